@@ -22,7 +22,8 @@ def check_shape(name: str, x, expected: tuple, what: str) -> None:
         e is None or e == s for e, s in zip(expected, shape, strict=True)
     )
     if not ok:
-        exp = "(" + ", ".join("?" if e is None else str(e) for e in expected) + ")"
+        parts = ["?" if e is None else str(e) for e in expected]
+        exp = "(" + ", ".join(parts) + ("," if len(parts) == 1 else "") + ")"
         raise ValueError(f"{name}: expected shape {exp} ({what}), got {tuple(shape)}")
 
 

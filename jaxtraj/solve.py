@@ -254,19 +254,17 @@ def reconstruct(
 def _conditioning_gain(basis, QtQ, chol, d):
     """``||Pi||_2`` with ``Pi = Theta N^-1 Theta^T A`` from the factorised normal matrix.
 
-    The non-zero eigenvalues of ``Pi^T Pi`` are those of ``N^-1 G N^-1 H`` with
-    ``G = Theta^T Theta`` and ``H = Theta^T A^2 Theta``; in the equilibrated,
-    Cholesky-whitened coordinates this is the symmetric ``M^T X M`` below.
+    With ``Theta^T Theta = R^T R`` (``Theta = U R``, U with orthonormal columns) the
+    non-zero eigenvalues of ``Pi^T Pi`` are those of the symmetric ``Z H Z^T``, where
+    ``Z = R N^-1`` and ``H = Theta^T A^2 Theta``. Only the Cholesky factor of N is used,
+    so a singular (degenerate) system gives a huge but finite gain.
     """
     F, k = basis.shape
-    gram = jnp.kron(basis.T @ basis, jnp.eye(3, dtype=basis.dtype))
+    eye3 = jnp.eye(3, dtype=basis.dtype)
+    R = jnp.kron(jnp.linalg.cholesky(basis.T @ basis).T, eye3)
     H = _kron_sum(basis, QtQ @ QtQ)
-    Linv = jsl.solve_triangular(chol, jnp.eye(3 * k, dtype=basis.dtype), lower=True)
-    X = Linv @ (gram * d[:, None] * d[None, :]) @ Linv.T
-    Y = Linv @ (H * d[:, None] * d[None, :]) @ Linv.T
-    Y = 0.5 * (Y + Y.T)
-    M = jnp.linalg.cholesky(Y + jnp.finfo(basis.dtype).eps * jnp.trace(Y) * jnp.eye(3 * k))
-    S = M.T @ X @ M
+    Zt = d[:, None] * jsl.cho_solve((chol, True), d[:, None] * R.T)  # N^-1 R^T
+    S = Zt.T @ H @ Zt
     lam = jnp.linalg.eigvalsh(0.5 * (S + S.T))[-1]
     return jnp.sqrt(jnp.maximum(lam, 0.0))
 
