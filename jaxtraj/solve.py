@@ -137,7 +137,7 @@ def _validate(P, uv, basis, weights, batch: tuple = ()) -> None:
     """
     check_shape("P", P, (None, 3, 4), "one 3x4 projection matrix per frame")
     F = P.shape[0]
-    lead = "".join(f"{n}, " for n in batch)
+    lead = "".join("N, " if n is None else f"{n}, " for n in batch)
     check_shape("uv", uv, (*batch, F, 2), f"({lead}F, 2): one pixel per frame of P, F={F}")
     if jnp.ndim(basis) != 2 or jnp.shape(basis)[0] != F:
         raise ValueError(
@@ -297,7 +297,7 @@ def reconstruct_points(
     Equivalent to a loop of :func:`reconstruct` over points; the per-frame sums become one
     large matrix product. Fields of the result gain a leading axis of size N.
     """
-    _validate(P, uv, basis, weights, batch=(jnp.shape(uv)[0] if jnp.ndim(uv) == 3 else -1,))
+    _validate(P, uv, basis, weights, batch=(jnp.shape(uv)[0] if jnp.ndim(uv) == 3 else None,))
     P_, uv_, basis_, _ = _as_arrays(P, uv, basis, None)
     w = jnp.ones(uv_.shape[:2], P_.dtype) if weights is None else jnp.asarray(weights, P_.dtype)
     return _reconstruct_points(P_, uv_, basis_, w, max_gain, refine)
