@@ -21,6 +21,8 @@ SHARED_DATA = Path(
 def shared_data() -> Path:
     """The reference-data folder; skips the test with a reason when it is absent."""
     if not SHARED_DATA.is_dir():
+        if os.environ.get("JAXTRAJ_REQUIRE_DATA"):
+            pytest.fail(f"JAXTRAJ_REQUIRE_DATA is set but {SHARED_DATA} does not exist")
         pytest.skip(
             f"reference data not found at {SHARED_DATA} (only CI and development checkouts "
             "have ../shared/data; set JAXTRAJ_SHARED_DATA to point elsewhere)"
