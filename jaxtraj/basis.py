@@ -16,8 +16,6 @@ last time, which reproduces the paper's eq. 3 exactly (up to column scaling).
 
 from __future__ import annotations
 
-import math
-
 import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
@@ -87,9 +85,7 @@ class DCTBasis(eqx.Module):
         u = jnp.arange(self.k)
         if not self.orthonormal:
             return jnp.ones(self.k, dtype)
-        return jnp.where(u == 0, jnp.sqrt(1.0 / self.size), jnp.sqrt(2.0 / self.size)).astype(
-            dtype
-        )
+        return jnp.where(u == 0, jnp.sqrt(1.0 / self.size), jnp.sqrt(2.0 / self.size)).astype(dtype)
 
     def __call__(self, times: ArrayLike, derivative: int = 0) -> Float[Array, "F k"]:
         """Evaluate the basis (or its ``derivative``-th time derivative) at ``times``.
@@ -152,4 +148,4 @@ def _check_k(k) -> None:
 
 def max_k(num_observed_frames: int) -> int:
     """The largest k with ``2 F' >= 3 k`` (the counting bound of paper eq. 6)."""
-    return int(math.floor(2 * num_observed_frames / 3))
+    return (2 * int(num_observed_frames)) // 3

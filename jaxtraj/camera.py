@@ -60,9 +60,7 @@ def look_at(
     return R_c_w, -R_c_w @ position_w
 
 
-def distort(
-    xy: Float[ArrayLike, "*n 2"], dist: Float[ArrayLike, " d"]
-) -> Float[Array, "*n 2"]:
+def distort(xy: Float[ArrayLike, "*n 2"], dist: Float[ArrayLike, " d"]) -> Float[Array, "*n 2"]:
     """Apply OpenCV's radial-tangential distortion to normalised image coordinates."""
     xy = jnp.asarray(xy)
     dist = jnp.asarray(dist, xy.dtype)

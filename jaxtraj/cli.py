@@ -52,18 +52,34 @@ def build_parser() -> argparse.ArgumentParser:
         "mean/max Euclidean error. Writes fig3_trajectory.png, fig4_errors.png and "
         "summary.json to --out.",
     )
-    demo.add_argument("--out", type=Path, default=Path("jaxtraj-demo"), help="output folder "
-                      "(default: ./jaxtraj-demo)")
-    demo.add_argument("--frames", type=_positive_int, default=150,
-                      help="number of images (default 150, as in the paper)")
-    demo.add_argument("--k", type=_positive_int, default=None,
-                      help="number of DCT basis vectors (default: chosen for the scene, see "
-                      "the printed note)")
-    demo.add_argument("--noise", type=_nonneg_float, default=0.3,
-                      help="pixel detection noise, standard deviation in px (default 0.3)")
+    demo.add_argument(
+        "--out",
+        type=Path,
+        default=Path("jaxtraj-demo"),
+        help="output folder (default: ./jaxtraj-demo)",
+    )
+    demo.add_argument(
+        "--frames",
+        type=_positive_int,
+        default=150,
+        help="number of images (default 150, as in the paper)",
+    )
+    demo.add_argument(
+        "--k",
+        type=_positive_int,
+        default=None,
+        help="number of DCT basis vectors (default: chosen for the scene, see the printed note)",
+    )
+    demo.add_argument(
+        "--noise",
+        type=_nonneg_float,
+        default=0.3,
+        help="pixel detection noise, standard deviation in px (default 0.3)",
+    )
     demo.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
-    demo.add_argument("--float32", action="store_true",
-                      help="compute in float32 instead of float64")
+    demo.add_argument(
+        "--float32", action="store_true", help="compute in float32 instead of float64"
+    )
     demo.add_argument("--no-plots", action="store_true", help="skip the PNG figures")
     return parser
 

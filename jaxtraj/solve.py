@@ -203,7 +203,7 @@ def reconstruct(
     """
     _validate(P, uv, basis, weights)
     P, uv, basis, weights = _as_arrays(P, uv, basis, weights)
-    F, k = basis.shape
+    k = basis.shape[1]
     dtype = P.dtype
     eps = jnp.finfo(dtype).eps
 
@@ -259,7 +259,6 @@ def _conditioning_gain(basis, QtQ, chol, d):
     ``Z = R N^-1`` and ``H = Theta^T A^2 Theta``. Only the Cholesky factor of N is used,
     so a singular (degenerate) system gives a huge but finite gain.
     """
-    F, k = basis.shape
     eye3 = jnp.eye(3, dtype=basis.dtype)
     R = jnp.kron(jnp.linalg.cholesky(basis.T @ basis).T, eye3)
     H = _kron_sum(basis, QtQ @ QtQ)

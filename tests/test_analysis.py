@@ -68,5 +68,7 @@ def test_conditioning_gain_matches_dense_projector_norm(rng):
     Pi = Th @ np.linalg.solve(Th.T @ A @ Th, Th.T @ A)
     np.testing.assert_allclose(Pi @ Pi, Pi, atol=1e-8)  # a projector
     ref = np.linalg.norm(Pi, 2)
-    assert float(jt.conditioning_gain(s["P"], s["uv"], s["basis"], w)) == pytest.approx(ref, rel=1e-7)
+    assert float(jt.conditioning_gain(s["P"], s["uv"], s["basis"], w)) == pytest.approx(
+        ref, rel=1e-7
+    )
     assert ref >= 1.0

@@ -1,0 +1,53 @@
+import json
+import subprocess
+import sys
+
+import pytest
+
+from jaxtraj.cli import EXIT_OK, EXIT_USAGE, main
+
+
+def test_demo_small_writes_results_and_meets_accuracy(tmp_path, capsys):
+    out = tmp_path / "demo"
+    rc = main(["demo", "--frames", "60", "--k", "12", "--out", str(out), "--seed", "1"])
+    assert rc == EXIT_OK
+    text = capsys.readouterr().out
+    assert "mean error" in text and "6-DoF pose" in text
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["point"]["status"] == "OK"
+    # 60 frames over 10 s at 0.3 px: a few millimetres at most (150 frames: ~0.5 mm).
+    assert summary["point"]["mean_error_mm"] < 5.0
+    assert summary["pose_6dof"]["mean_orientation_error_deg"] < 1.0
+    for name in ("fig3_trajectory.png", "fig4_errors.png"):
+        data = (out / name).read_bytes()
+        assert data[:8] == b"\x89PNG\r\n\x1a\n" and len(data) > 10_000
+    assert not list(out.glob("*.part"))
+
+
+def test_demo_rejects_k_too_large(tmp_path, capsys):
+    rc = main(["demo", "--frames", "10", "--k", "8", "--out", str(tmp_path)])
+    assert rc == EXIT_USAGE
+    assert "--k 8 is too large for --frames 10" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize(
+    "argv,needle",
+    [
+        (["demo", "--frames", "0"], "positive integer"),
+        (["demo", "--noise", "-1"], "non-negative"),
+        (["nonsense"], "invalid choice"),
+    ],
+)
+def test_bad_options_exit_2_with_message(argv, needle, capsys):
+    with pytest.raises(SystemExit) as exc:
+        main(argv)
+    assert exc.value.code == EXIT_USAGE
+    assert needle in capsys.readouterr().err
+
+
+def test_console_script_help():
+    proc = subprocess.run(
+        [sys.executable, "-m", "jaxtraj", "demo", "--help"], capture_output=True, text=True
+    )
+    assert proc.returncode == 0
+    assert "--frames" in proc.stdout and "--noise" in proc.stdout
