@@ -174,7 +174,7 @@ def reconstruct(
     basis: Float[ArrayLike, "F k"],
     weights: Float[ArrayLike, " F"] | None = None,
     *,
-    max_gain: float = 100.0,
+    max_gain: float = 20.0,
     refine: int = 1,
 ) -> Reconstruction:
     """Reconstruct one moving point's trajectory from its pixel track (paper eq. 6).
@@ -288,7 +288,7 @@ def reconstruct_points(
     basis: Float[ArrayLike, "F k"],
     weights: Float[ArrayLike, "N F"] | None = None,
     *,
-    max_gain: float = 100.0,
+    max_gain: float = 20.0,
     refine: int = 1,
 ) -> Reconstruction:
     """Reconstruct N point trajectories seen by the same cameras (jit-compiled, batched).

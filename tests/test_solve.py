@@ -219,3 +219,18 @@ def test_bad_input_messages(rng):
         jt.reconstruct(P, uv, basis, np.ones(19))
     with pytest.raises(ValueError, match=r"uv: expected shape \(\?, 20, 2\)"):
         jt.reconstruct_points(P, uv, basis)
+
+
+def test_slow_smooth_robot_camera_is_flagged_not_silently_wrong():
+    """DESIGN.md: a slow smooth camera can give answers far off; the status must say so."""
+    from jaxtraj.sim.scene import make_scene
+
+    for seed, speed in [(0, 0.05), (1, 0.3)]:
+        s = make_scene(
+            jax.random.PRNGKey(seed), camera="smooth", camera_speed=speed, n_frames=60, noise_px=0.5
+        )
+        for k in (5, 10):
+            res = jt.reconstruct(s.P, s.uv, jt.dct_basis(s.times, k), s.weights)
+            err = np.mean(np.linalg.norm(np.asarray(res.points - s.points), axis=1))
+            # Either the answer is good or it is flagged.
+            assert err < 0.01 or int(res.status) == jt.Status.DEGENERATE, (seed, k, err)
