@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 import jaxtraj as jt
-from tests._scenes import scene
+from tests._scenes import K640, project_np, scene
 
 
 def _eta_closed_form(C, X, basis):
@@ -72,3 +72,29 @@ def test_conditioning_gain_matches_dense_projector_norm(rng):
         ref, rel=1e-7
     )
     assert ref >= 1.0
+
+
+def test_solver_gain_estimate_is_a_tight_lower_bound(rng):
+    for seed in range(4):
+        s = scene(np.random.default_rng(seed), F=30, k=6, noise=0.3, in_span=False)
+        exact = float(jt.conditioning_gain(s["P"], s["uv"], s["basis"]))
+        est = float(jt.reconstruct(s["P"], s["uv"], s["basis"]).gain)
+        assert est <= exact * (1 + 1e-9)
+        assert est >= 0.95 * exact
+
+
+def test_diagnostics_false_skips_gain_but_flags_singular_systems(rng):
+    s = scene(rng, F=30, k=6, noise=0.3, in_span=False)
+    fast = jt.reconstruct(s["P"], s["uv"], s["basis"], diagnostics=False)
+    full = jt.reconstruct(s["P"], s["uv"], s["basis"])
+    np.testing.assert_allclose(fast.points, full.points, atol=1e-12)
+    assert np.isnan(float(fast.gain)) and int(fast.status) == jt.Status.OK
+    X = s["X"]
+    C = X + np.array([0.2, 0.1, -1.0])  # a camera that follows the point
+    P = []
+    for c, x in zip(C, X, strict=True):
+        R, t = jt.look_at(c, x, up_w=(0.0, 1.0, 0.0))
+        P.append(K640 @ np.hstack([np.asarray(R), np.asarray(t)[:, None]]))
+    P = np.array(P)
+    res = jt.reconstruct(P, project_np(P, X), s["basis"], diagnostics=False)
+    assert int(res.status) == jt.Status.DEGENERATE
