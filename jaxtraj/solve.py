@@ -126,16 +126,25 @@ def _kron_sum(basis, blocks):
 
 
 def _factorise(N):
-    """Cholesky factor of the equilibrated ``D N D`` (unit diagonal) and the scaling ``d``.
+    """Inverse Cholesky factor of the equilibrated ``D N D`` (unit diagonal), and ``d``.
 
-    A ridge at round-off level lets singular (degenerate) systems factorise too; their
-    status is set from the conditioning, and iterative refinement removes the ridge's
-    bias on healthy ones.
+    Returns ``(Linv, d)`` with ``N^-1 = D Linv^T Linv D``. A ridge at round-off level lets
+    singular (degenerate) systems factorise too; their status is set from the
+    conditioning, and iterative refinement removes the ridge's bias on healthy ones.
+
+    Every later solve is a matrix product with ``Linv``, so a batched problem makes just
+    one chain of two LAPACK calls (Cholesky, triangular inverse). Batched LAPACK calls
+    that can run concurrently have been seen to deadlock XLA's CPU thread pool with
+    jaxlib 0.10 on 2 cores, and small matrix products are cheaper than triangular
+    solves there anyway.
     """
     eps = jnp.finfo(N.dtype).eps
+    n = N.shape[0]
     d = jax.lax.rsqrt(jnp.maximum(jnp.diag(N), jnp.finfo(N.dtype).tiny))
-    Ns = N * d[:, None] * d[None, :] + 16 * eps * jnp.eye(N.shape[0], dtype=N.dtype)
-    return jnp.linalg.cholesky(Ns), d
+    Ns = N * d[:, None] * d[None, :] + 16 * eps * jnp.eye(n, dtype=N.dtype)
+    chol = jnp.linalg.cholesky(Ns)
+    Linv = jsl.solve_triangular(chol, jnp.eye(n, dtype=N.dtype), lower=True)
+    return Linv, d
 
 
 def normal_equations(
@@ -253,11 +262,10 @@ def reconstruct(
     N = _kron_sum(basis, QtQ)
     b = (basis.T @ Qtq).reshape(-1)
 
-    chol, d = _factorise(N)
+    Linv, d = _factorise(N)
 
     def solve(rhs):
-        y = jsl.solve_triangular(chol, d * rhs, lower=True)
-        return d * jsl.solve_triangular(chol, y, lower=True, trans=1)
+        return d * (Linv.T @ (Linv @ (d * rhs)))
 
     beta = solve(b)
     for _ in range(refine):
@@ -270,11 +278,11 @@ def reconstruct(
     points = basis @ coeffs
 
     if diagnostics:
-        gain = _conditioning_gain(basis, QtQ, chol, d)
+        gain = _conditioning_gain(basis, QtQ, Linv, d)
         degenerate = (gain > max_gain) | ~jnp.isfinite(gain)
     else:
         gain = jnp.full((), jnp.nan, dtype)
-        diag = jnp.diag(chol)
+        diag = jnp.diag(Linv)  # reciprocals of the Cholesky diagonal
         # Lower bound on cond(Ns); a singular system leaves only the ridge on the diagonal.
         degenerate = (jnp.max(diag) / jnp.min(diag)) ** 2 > 1.0 / jnp.sqrt(eps)
     rms = _reprojection_rms(P, uv, points, observed)
@@ -293,7 +301,7 @@ def reconstruct(
     )
 
 
-def _conditioning_gain(basis, QtQ, chol, d, exact: bool = False):
+def _conditioning_gain(basis, QtQ, Linv, d, exact: bool = False):
     """``||Pi||_2`` with ``Pi = Theta N^-1 Theta^T A`` from the factorised normal matrix.
 
     With ``Theta^T Theta = R^T R`` (``Theta = U R``, U with orthonormal columns) the
@@ -310,7 +318,7 @@ def _conditioning_gain(basis, QtQ, chol, d, exact: bool = False):
     eye3 = jnp.eye(3, dtype=basis.dtype)
     R = jnp.kron(jnp.linalg.cholesky(basis.T @ basis).T, eye3)
     H = _kron_sum(basis, QtQ @ QtQ)
-    Zt = d[:, None] * jsl.cho_solve((chol, True), d[:, None] * R.T)  # N^-1 R^T
+    Zt = d[:, None] * (Linv.T @ (Linv @ (d[:, None] * R.T)))  # N^-1 R^T
     S = Zt.T @ H @ Zt
     S = 0.5 * (S + S.T)
     if exact:
@@ -338,8 +346,8 @@ def _gain_only(P, uv, basis, weights):
     P, uv, basis, weights = _as_arrays(P, uv, basis, weights)
     uv = jnp.where(weights[:, None] > 0, uv, 0.0)
     QtQ, _, _, _ = _frame_blocks(P, uv, weights)
-    chol, d = _factorise(_kron_sum(basis, QtQ))
-    return _conditioning_gain(basis, QtQ, chol, d, exact=True)
+    Linv, d = _factorise(_kron_sum(basis, QtQ))
+    return _conditioning_gain(basis, QtQ, Linv, d, exact=True)
 
 
 def _reprojection_rms(P, uv, points, observed):
