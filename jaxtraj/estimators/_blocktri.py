@@ -1,0 +1,130 @@
+"""Symmetric positive-definite block-tridiagonal systems, solved in O(F s^3).
+
+The normal matrix of a trajectory with a Markov (state-space) prior is block tridiagonal:
+diagonal blocks ``D_i`` (F, s, s) and sub-diagonal blocks ``E_i = A[i+1, i]``
+(F-1, s, s). A block Cholesky factorisation ``A = L L^T`` with diagonal blocks ``C_i``
+and sub-diagonal blocks ``M_i`` is a forward ``lax.scan``; the solve is one forward and
+one backward scan; the diagonal blocks of ``A^-1`` (the posterior covariances, as in a
+Rauch-Tung-Striebel smoother) come from a second backward scan::
+
+    C_0 C_0^T = D_0,   M_i = E_i C_i^-T,   C_{i+1} C_{i+1}^T = D_{i+1} - M_i M_i^T
+    S_i = C_i^-T C_i^-1 + K_i S_{i+1} K_i^T,   K_i = C_i^-T M_i^T
+
+No dense (F s, F s) matrix is ever formed.
+"""
+
+from __future__ import annotations
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import jax.scipy.linalg as jsl
+from jaxtyping import Array, Float
+
+
+class BlockCholesky(eqx.Module):
+    """Factor of a block-tridiagonal matrix: ``C`` (F, s, s) lower, ``M`` (F-1, s, s)."""
+
+    C: Float[Array, "F s s"]
+    M: Float[Array, "Fm1 s s"]
+
+
+def _tri(C, B, *, lower=True, trans=0):
+    return jsl.solve_triangular(C, B, lower=lower, trans=trans)
+
+
+def factor_forward(
+    D: Float[Array, "F s s"], E: Float[Array, "Fm1 s s"], b: Float[Array, "F s"]
+) -> tuple[BlockCholesky, Float[Array, "F s"]]:
+    """Block Cholesky factor of the matrix (diagonal ``D``, sub-diagonal ``E``) and the
+    forward substitution ``y = L^-1 b``, in one scan."""
+    C0 = jnp.linalg.cholesky(D[0])
+    y0 = _tri(C0, b[0])
+
+    def step(carry, inputs):
+        C_prev, y_prev = carry
+        D_i, E_prev, b_i = inputs
+        M = _tri(C_prev, E_prev.T).T  # M = E C_prev^-T
+        C = jnp.linalg.cholesky(D_i - M @ M.T)
+        y = _tri(C, b_i - M @ y_prev)
+        return (C, y), (C, M, y)
+
+    _, (Cs, Ms, ys) = jax.lax.scan(step, (C0, y0), (D[1:], E, b[1:]))
+    chol = BlockCholesky(C=jnp.concatenate([C0[None], Cs]), M=Ms)
+    return chol, jnp.concatenate([y0[None], ys])
+
+
+def back_substitute(chol: BlockCholesky, y: Float[Array, "F s"]) -> Float[Array, "F s"]:
+    """Solve ``L^T x = y`` (the second half of a solve)."""
+    C, M = chol.C, chol.M
+    xl = _tri(C[-1], y[-1], trans=1)
+
+    def bwd(x_next, inputs):
+        C_i, M_i, y_i = inputs
+        x = _tri(C_i, y_i - M_i.T @ x_next, trans=1)
+        return x, x
+
+    _, xs = jax.lax.scan(bwd, xl, (C[:-1], M, y[:-1]), reverse=True)
+    return jnp.concatenate([xs, xl[None]])
+
+
+def factor(D: Float[Array, "F s s"], E: Float[Array, "Fm1 s s"]) -> BlockCholesky:
+    """Block Cholesky factor of the matrix with diagonal ``D`` and sub-diagonal ``E``."""
+    return factor_forward(D, E, jnp.zeros(D.shape[:2], D.dtype))[0]
+
+
+def solve(chol: BlockCholesky, b: Float[Array, "F s"]) -> Float[Array, "F s"]:
+    """Solve ``A x = b`` with the block Cholesky factor of ``A``."""
+    C, M = chol.C, chol.M
+    y0 = _tri(C[0], b[0])
+
+    def fwd(y_prev, inputs):
+        C_i, M_prev, b_i = inputs
+        y = _tri(C_i, b_i - M_prev @ y_prev)
+        return y, y
+
+    _, ys = jax.lax.scan(fwd, y0, (C[1:], M, b[1:]))
+    return back_substitute(chol, jnp.concatenate([y0[None], ys]))
+
+
+def diag_inverse(chol: BlockCholesky) -> Float[Array, "F s s"]:
+    """The diagonal blocks of ``A^-1`` (selected inversion, O(F s^3))."""
+    C, M = chol.C, chol.M
+    s = C.shape[-1]
+    eye = jnp.eye(s, dtype=C.dtype)
+    Cinv = jax.vmap(lambda c: _tri(c, eye))(C)  # C_i^-1
+    own = jnp.einsum("fji,fjk->fik", Cinv, Cinv)  # C_i^-T C_i^-1
+    K = jnp.einsum("fji,fkj->fik", Cinv[:-1], M)  # C_i^-T M_i^T
+
+    def bwd(S_next, inputs):
+        own_i, K_i = inputs
+        S = own_i + K_i @ S_next @ K_i.T
+        S = 0.5 * (S + S.T)
+        return S, S
+
+    _, Ss = jax.lax.scan(bwd, own[-1], (own[:-1], K), reverse=True)
+    return jnp.concatenate([Ss, own[-1][None]])
+
+
+def logdet(chol: BlockCholesky) -> Float[Array, ""]:
+    """``log det A`` from the factor."""
+    return 2.0 * jnp.sum(jnp.log(jnp.diagonal(chol.C, axis1=1, axis2=2)))
+
+
+def min_pivot_ratio(chol: BlockCholesky, D: Float[Array, "F s s"]) -> Float[Array, ""]:
+    """``min_j C_jj^2 / D_jj``: near 0 when the system is (numerically) singular."""
+    piv = jnp.diagonal(chol.C, axis1=1, axis2=2) ** 2
+    dd = jnp.maximum(jnp.diagonal(D, axis1=1, axis2=2), jnp.finfo(D.dtype).tiny)
+    return jnp.min(piv / dd)
+
+
+def dense(D: Float[Array, "F s s"], E: Float[Array, "Fm1 s s"]) -> Float[Array, "Fs Fs"]:
+    """The dense matrix (small problems and tests only)."""
+    F, s, _ = D.shape
+    A = jnp.zeros((F * s, F * s), D.dtype)
+    for i in range(F):
+        A = A.at[i * s : (i + 1) * s, i * s : (i + 1) * s].set(D[i])
+    for i in range(F - 1):
+        A = A.at[(i + 1) * s : (i + 2) * s, i * s : (i + 1) * s].set(E[i])
+        A = A.at[i * s : (i + 1) * s, (i + 1) * s : (i + 2) * s].set(E[i].T)
+    return A

@@ -1,0 +1,121 @@
+"""First-order covariance of the DCT solve: exact Jacobian reference, Monte-Carlo spread
+under pixel and camera-pose noise, batching and bad inputs."""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import jaxtraj as jt
+from jaxtraj.estimators import dct_covariance, points_covariance
+from jaxtraj.estimators.covariance import _hat
+from tests.test_estimators_scenes import robot_scene
+
+F, K = 40, 6
+
+
+@pytest.fixture
+def scene(rng):
+    s = robot_scene(rng, F=F, mode="random", noise=0.5)
+    s["basis"] = np.asarray(jt.dct_basis(s["times"], K))
+    return s
+
+
+def _coeffs(s, uv):
+    return jt.reconstruct_points(s["P"], uv[None], s["basis"]).coeffs[0]
+
+
+def test_equals_linearised_solve(scene):
+    s = scene
+    cov = dct_covariance(s["P"], s["uv"], s["basis"], _coeffs(s, s["uv"]), pixel_sigma=0.5)
+    J = jax.jit(jax.jacfwd(lambda u: jt.reconstruct(s["P"], u, s["basis"]).coeffs.reshape(-1)))(
+        jnp.asarray(s["uv"])
+    ).reshape(3 * K, -1)
+    ref = 0.25 * J @ J.T
+    np.testing.assert_allclose(
+        np.asarray(cov.coeffs), np.asarray(ref), atol=1e-12 * np.abs(ref).max() * 1e3
+    )
+    pts = np.asarray(points_covariance(s["basis"], cov.coeffs))
+    Phi = np.kron(s["basis"], np.eye(3))
+    dense = Phi @ np.asarray(cov.coeffs) @ Phi.T
+    np.testing.assert_allclose(pts[7], dense[21:24, 21:24], rtol=1e-10)
+    np.testing.assert_allclose(np.asarray(cov.std), np.sqrt(np.diagonal(pts, axis1=1, axis2=2)))
+
+
+def test_matches_monte_carlo_pixel_noise(scene, rng):
+    s = scene
+    n = 1500
+    solve = jax.jit(lambda uv: jt.reconstruct_points(s["P"], uv, s["basis"]).points)
+    pts = np.asarray(solve(s["clean"][None] + 0.5 * rng.normal(size=(n, F, 2))))
+    emp = np.einsum("nfi,nfj->fij", pts - pts.mean(0), pts - pts.mean(0)) / (n - 1)
+    cov = dct_covariance(s["P"], s["clean"], s["basis"], _coeffs(s, s["clean"]), pixel_sigma=0.5)
+    ratio = np.trace(emp, axis1=1, axis2=2) / np.trace(np.asarray(cov.points), axis1=1, axis2=2)
+    # sampling error of a variance from n draws: about sqrt(2 / n) = 3.7 %
+    assert abs(np.mean(ratio) - 1) < 0.03
+    assert np.all(np.abs(ratio - 1) < 0.15)
+
+
+def test_matches_monte_carlo_pose_noise(scene, rng):
+    s = scene
+    n = 800
+    sd = np.array([1e-3] * 3 + [5e-4] * 3)  # 1 mm, 0.5 mrad
+    xi = rng.normal(size=(n, F, 6)) * sd
+    step = jax.vmap(jax.vmap(lambda P, x: P @ (jnp.eye(4) - _hat(x) + 0.5 * _hat(x) @ _hat(x))))
+    Ps = step(jnp.broadcast_to(jnp.asarray(s["P"]), (n, F, 3, 4)), jnp.asarray(xi))
+    solve = jax.jit(jax.vmap(lambda P: jt.reconstruct(P, s["clean"], s["basis"]).points))
+    pts = np.asarray(solve(Ps))
+    emp = np.einsum("nfi,nfj->fij", pts - pts.mean(0), pts - pts.mean(0)) / (n - 1)
+    pose_cov = np.tile(np.diag(sd**2), (F, 1, 1))
+    cov = dct_covariance(
+        s["P"], s["clean"], s["basis"], _coeffs(s, s["clean"]), pixel_sigma=1e-9, pose_cov=pose_cov
+    )
+    ratio = np.trace(emp, axis1=1, axis2=2) / np.trace(np.asarray(cov.points), axis1=1, axis2=2)
+    assert abs(np.mean(ratio) - 1) < 0.06
+
+
+def test_jit_vmap_and_weights(scene, rng):
+    s = scene
+    w = np.ones(F)
+    w[5:9] = 0.0
+    uv = s["uv"].copy()
+    uv[5:9] = np.nan
+    c = jt.reconstruct(s["P"], uv, s["basis"], w).coeffs
+    eager = dct_covariance(s["P"], uv, s["basis"], c, w, pixel_sigma=0.5)
+    jitted = jax.jit(lambda u, c: dct_covariance(s["P"], u, s["basis"], c, w, pixel_sigma=0.5))(
+        jnp.nan_to_num(uv), c
+    )
+    np.testing.assert_allclose(np.asarray(jitted.coeffs), np.asarray(eager.coeffs), rtol=1e-10)
+    uvs = np.stack([s["uv"], s["uv"] + 0.3])
+    cs = jt.reconstruct_points(s["P"], uvs, s["basis"]).coeffs
+    batch = jax.vmap(lambda u, c: dct_covariance(s["P"], u, s["basis"], c, pixel_sigma=0.5))(
+        uvs, cs
+    )
+    one = dct_covariance(s["P"], uvs[1], s["basis"], cs[1], pixel_sigma=0.5)
+    np.testing.assert_allclose(np.asarray(batch.points[1]), np.asarray(one.points), rtol=1e-10)
+    # differentiable: d trace / d sigma = 2 trace / sigma
+    g = jax.grad(
+        lambda sg: jnp.trace(
+            dct_covariance(s["P"], s["uv"], s["basis"], cs[0], pixel_sigma=sg).coeffs
+        )
+    )(0.5)
+    tr = float(
+        jnp.trace(dct_covariance(s["P"], s["uv"], s["basis"], cs[0], pixel_sigma=0.5).coeffs)
+    )
+    assert float(g) == pytest.approx(2 * tr / 0.5, rel=1e-9)
+
+
+def test_bad_inputs(scene):
+    s = scene
+    c = np.zeros((K, 3))
+    with pytest.raises(ValueError, match="coeffs"):
+        dct_covariance(s["P"], s["uv"], s["basis"], np.zeros((K + 1, 3)))
+    with pytest.raises(ValueError, match="basis"):
+        dct_covariance(s["P"], s["uv"], s["basis"][:-1], c)
+    with pytest.raises(ValueError, match="pose_cov"):
+        dct_covariance(s["P"], s["uv"], s["basis"], c, pose_cov=np.zeros((F, 3, 3)))
+    with pytest.raises(ValueError, match="pixel_sigma"):
+        dct_covariance(s["P"], s["uv"], s["basis"], c, pixel_sigma=np.ones(3))
+    with pytest.raises(ValueError, match="coeffs_cov"):
+        points_covariance(s["basis"], np.eye(5))

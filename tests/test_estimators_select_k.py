@@ -1,0 +1,83 @@
+"""Automatic k: masked solves equal separate fits, gains equal the solver's, the CV
+choice is near the error-optimal k, batching and bad inputs."""
+
+from __future__ import annotations
+
+import jax
+import numpy as np
+import pytest
+
+import jaxtraj as jt
+from jaxtraj.estimators import select_k_cv, select_k_gain
+from jaxtraj.estimators.select_k import _masked_solve
+from jaxtraj.solve import normal_equations
+from tests.test_estimators_scenes import rmse, robot_scene
+
+F = 60
+KS = (4, 6, 8, 10, 12, 14, 16)
+CV = jax.jit(lambda P, uv, t: select_k_cv(P, uv, t, KS))
+GAIN = jax.jit(lambda P, uv, t: select_k_gain(P, uv, t, KS, max_gain=3.0))
+DCT = jax.jit(lambda P, uv, b: jt.reconstruct_points(P, uv[None], b).points[0], static_argnums=())
+
+
+def test_masked_solve_equals_k_column_fit(rng):
+    s = robot_scene(rng, F=F, mode="random", noise=0.4)
+    big = jt.dct_basis(s["times"], 12)
+    N, b = normal_equations(s["P"], s["uv"], big)
+    mask = np.repeat((np.arange(12) < 7).astype(float), 3)
+    beta, _, _ = _masked_solve(N, b, mask)
+    ref = jt.reconstruct(s["P"], s["uv"], big[:, :7]).coeffs
+    np.testing.assert_allclose(np.asarray(beta[:21]).reshape(7, 3), np.asarray(ref), rtol=1e-9)
+    assert np.all(np.asarray(beta[21:]) == 0.0)
+
+
+def test_gains_equal_solver_gain(rng):
+    s = robot_scene(rng, F=F, mode="smooth", noise=0.4)
+    sel = GAIN(s["P"], s["uv"], s["times"])
+    for i, k in enumerate(KS[:3]):
+        g = jt.reconstruct(s["P"], s["uv"], jt.dct_basis(s["times"], k)).gain
+        assert float(sel.gain[i]) == pytest.approx(float(g), rel=1e-6)
+    ok = np.asarray(sel.gain) <= 3.0
+    expected = max([k for k, o in zip(KS, ok, strict=True) if o], default=0)
+    assert int(sel.k) == expected
+
+
+def test_cv_choice_near_error_optimal_k():
+    rng = np.random.default_rng(11)
+    regrets = []
+    for _ in range(4):
+        s = robot_scene(rng, F=F, mode="random", noise=0.3)
+        errs = [rmse(DCT(s["P"], s["uv"], jt.dct_basis(s["times"], k)), s["X"]) for k in KS]
+        sel = CV(s["P"], s["uv"], s["times"])
+        chosen = errs[KS.index(int(sel.k))]
+        regrets.append(chosen / min(errs))
+        assert abs(int(sel.k) - KS[int(np.argmin(errs))]) <= 4
+    assert np.median(regrets) < 1.3, regrets
+
+
+def test_vmap_equals_loop_and_degenerate_camera(rng):
+    s = robot_scene(rng, F=F, mode="random", noise=0.3)
+    uvs = np.stack([s["uv"], s["uv"] + rng.normal(size=(F, 2)) * 0.3])
+    batch = jax.vmap(lambda u: select_k_cv(s["P"], u, s["times"], KS))(uvs)
+    one = CV(s["P"], uvs[1], s["times"])
+    np.testing.assert_allclose(np.asarray(batch.score[1]), np.asarray(one.score), rtol=1e-9)
+    assert int(batch.k[1]) == int(one.k)
+    # a camera that follows the point at a fixed offset: nothing is admissible
+    P = np.array(s["P"])
+    offs = s["X"] - s["X"][0]
+    P[:, :, 3] = P[0, :, 3] - np.einsum("ij,fj->fi", P[0, :, :3], offs)
+    P[:, :, :3] = P[0, :, :3]
+    uv = s["clean"][:1].repeat(F, 0)
+    assert int(GAIN(P, uv, s["times"]).k) == 0
+
+
+def test_bad_inputs(rng):
+    s = robot_scene(rng, F=20, mode="random")
+    with pytest.raises(ValueError, match="ks"):
+        select_k_cv(s["P"], s["uv"], s["times"], ks=(0, 3))
+    with pytest.raises(ValueError, match="ks"):
+        select_k_gain(s["P"], s["uv"], s["times"], ks=(2.5,))
+    with pytest.raises(ValueError, match="folds"):
+        select_k_cv(s["P"], s["uv"], s["times"], folds=1)
+    with pytest.raises(ValueError, match="times"):
+        select_k_cv(s["P"], s["uv"], s["times"][:-1])
