@@ -41,3 +41,24 @@ def check_finite(name: str, x, mask=None, hint: str = "") -> None:
         idx = np.flatnonzero(bad)
         shown = ", ".join(map(str, idx[:8])) + (" ..." if idx.size > 8 else "")
         raise ValueError(f"{name}: {idx.size} non-finite entr(y/ies) at index {shown}. {hint}")
+
+
+def check_tracks(uv, weights) -> None:
+    """Value checks of pixel tracks (..., F, 2) and weights (..., F) on concrete arrays.
+
+    Weights must be finite and >= 0 (0 marks a missing detection); pixels with non-zero
+    weight must be finite. Under ``jit`` nothing is checked here: solvers report such
+    data through their status instead.
+    """
+    if not is_concrete(uv, weights):
+        return
+    w = np.ones(np.shape(uv)[:-1]) if weights is None else np.asarray(weights)
+    if not np.all(np.isfinite(w)) or np.any(w < 0):
+        raise ValueError("weights: must be finite and >= 0 (0 marks a missing detection)")
+    bad = ~np.all(np.isfinite(np.asarray(uv)), axis=-1) & (w > 0)
+    if bad.any():
+        where = tuple(int(i) for i in np.argwhere(bad)[0])
+        raise ValueError(
+            f"uv: {int(bad.sum())} non-finite pixel(s) with non-zero weight, first at index "
+            f"{where} (track, frame). Give a missing detection weight 0."
+        )

@@ -31,7 +31,7 @@ import jax.scipy.linalg as jsl
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float, Int
 
-from ._checks import check_finite, check_shape, is_concrete
+from ._checks import check_finite, check_shape, check_tracks, is_concrete
 
 __all__ = ["Reconstruction", "Status", "normal_equations", "reconstruct", "reconstruct_points"]
 
@@ -189,18 +189,10 @@ def _validate(P, uv, basis, weights, batch: tuple = ()) -> None:
     if weights is not None:
         check_shape("weights", weights, (*batch, F), "one non-negative weight per pixel")
     check_finite("P", P, hint="Projection matrices must be finite.")
+    check_tracks(uv, weights)
     if not is_concrete(uv, weights):
         return
     w = np.ones(np.shape(uv)[:-1]) if weights is None else np.asarray(weights)
-    if not np.all(np.isfinite(w)) or np.any(w < 0):
-        raise ValueError("weights: must be finite and >= 0 (0 marks a missing detection)")
-    bad = ~np.all(np.isfinite(np.asarray(uv)), axis=-1) & (w > 0)
-    if bad.any():
-        where = np.argwhere(bad)[0]
-        raise ValueError(
-            f"uv: {int(bad.sum())} non-finite pixel(s) with non-zero weight, first at index "
-            f"{tuple(int(i) for i in where)}. Give a missing detection weight 0."
-        )
     k = jnp.shape(basis)[1]
     n_obs = int(np.min(np.sum(w > 0, axis=-1)))
     if 2 * n_obs < 3 * k:

@@ -7,7 +7,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 
-from .._checks import check_shape, is_concrete
+from .._checks import check_shape, check_tracks, is_concrete
 
 LOSSES = ("l2", "huber", "cauchy")
 
@@ -86,19 +86,9 @@ def validate_track(P, uv, times=None, weights=None) -> None:
                 raise ValueError("times: must be finite and strictly increasing")
     if weights is not None:
         check_shape("weights", weights, (F,), "one non-negative weight per frame")
-    if not is_concrete(P, uv, weights):
-        return
-    if not np.all(np.isfinite(np.asarray(P))):
+    if is_concrete(P) and not np.all(np.isfinite(np.asarray(P))):
         raise ValueError("P: projection matrices must be finite")
-    w = np.ones(F) if weights is None else np.asarray(weights)
-    if not np.all(np.isfinite(w)) or np.any(w < 0):
-        raise ValueError("weights: must be finite and >= 0 (0 marks a missing detection)")
-    bad = ~np.all(np.isfinite(np.asarray(uv)), axis=-1) & (w > 0)
-    if bad.any():
-        raise ValueError(
-            f"uv: {int(bad.sum())} non-finite pixel(s) with non-zero weight, first at frame "
-            f"{int(np.flatnonzero(bad)[0])}. Give a missing detection weight 0."
-        )
+    check_tracks(uv, weights)
 
 
 def check_loss(loss: str, scale) -> None:

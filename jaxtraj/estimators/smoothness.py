@@ -41,7 +41,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float, Int
 
-from .._checks import is_concrete
+from .._checks import check_tracks
 from ..solve import Status
 from . import _blocktri as bt
 from ._common import (
@@ -229,17 +229,7 @@ def _validate_batch(P, uv, times, weights) -> None:
     if weights is not None and np.shape(weights) != np.shape(uv)[:2]:
         raise ValueError(f"weights: expected shape {np.shape(uv)[:2]}, got {np.shape(weights)}")
     validate_track(P, uv[0], times, None if weights is None else weights[0])
-    if is_concrete(uv, weights):
-        w = np.ones(np.shape(uv)[:2]) if weights is None else np.asarray(weights)
-        if not np.all(np.isfinite(w)) or np.any(w < 0):
-            raise ValueError("weights: must be finite and >= 0 (0 marks a missing detection)")
-        bad = ~np.all(np.isfinite(np.asarray(uv)), axis=-1) & (w > 0)
-        if bad.any():
-            i, f = np.argwhere(bad)[0]
-            raise ValueError(
-                f"uv: {int(bad.sum())} non-finite pixel(s) with non-zero weight, first at "
-                f"track {i}, frame {f}. Give a missing detection weight 0."
-            )
+    check_tracks(uv, weights)
 
 
 def smooth_trajectory(
