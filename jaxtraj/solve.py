@@ -172,7 +172,7 @@ def _as_arrays(P, uv, basis, weights):
     return P, uv, basis, weights
 
 
-def _validate(P, uv, basis, weights, batch: tuple = ()) -> None:
+def _validate(P, uv, basis, weights, batch: tuple = (), count_check: bool = True) -> None:
     """Host-side checks with messages that name the argument.
 
     ``batch`` is the tuple of leading batch sizes of ``uv`` and ``weights`` (points).
@@ -191,6 +191,8 @@ def _validate(P, uv, basis, weights, batch: tuple = ()) -> None:
     check_finite("P", P, hint="Projection matrices must be finite.")
     check_tracks(uv, weights)
     if not is_concrete(uv, weights):
+        return
+    if not count_check:
         return
     w = np.ones(np.shape(uv)[:-1]) if weights is None else np.asarray(weights)
     k = jnp.shape(basis)[1]
@@ -211,6 +213,7 @@ def reconstruct(
     max_gain: float = 20.0,
     refine: int = 1,
     diagnostics: bool = True,
+    penalty: Float[ArrayLike, " k"] | None = None,
 ) -> Reconstruction:
     """Reconstruct one moving point's trajectory from its pixel track (paper eq. 6).
 
@@ -233,6 +236,9 @@ def reconstruct(
             is judged from a Cholesky condition estimate, which catches singular
             systems (a camera that follows the point) but not every amplified basis
             error; use it for throughput once a camera set-up is known to be healthy.
+        penalty: optional (k,) non-negative weights of a quadratic penalty
+            ``sum_u penalty[u] ||beta_u||^2`` added to the least squares (a regularised
+            DCT; see :func:`jaxtraj.estimators.roughness_penalty`). Default: none.
 
     Returns:
         A :class:`Reconstruction`. Check ``status`` (or call ``.check()``): a
@@ -242,7 +248,12 @@ def reconstruct(
         ValueError: on wrong shapes, negative weights, or, for concrete inputs,
             non-finite pixels with non-zero weight and ``2 F' < 3 k``.
     """
-    _validate(P, uv, basis, weights)
+    _validate(P, uv, basis, weights, count_check=penalty is None)
+    if penalty is not None:
+        check_shape("penalty", penalty, (jnp.shape(basis)[1],), "one weight per basis vector")
+        p = np.asarray(penalty) if is_concrete(penalty) else None
+        if p is not None and not (np.all(np.isfinite(p)) and np.all(p >= 0)):
+            raise ValueError("penalty: must be finite and >= 0")
     P, uv, basis, weights = _as_arrays(P, uv, basis, weights)
     k = basis.shape[1]
     dtype = P.dtype
@@ -254,6 +265,8 @@ def reconstruct(
     QtQ, Qtq, Q, q = _frame_blocks(P, uv, weights)
 
     N = _kron_sum(basis, QtQ)
+    if penalty is not None:
+        N = N + jnp.diag(jnp.repeat(jnp.asarray(penalty, dtype), 3))
     b = (basis.T @ Qtq).reshape(-1)
 
     Linv, d = _factorise(N)
@@ -266,6 +279,8 @@ def reconstruct(
         T = basis @ beta.reshape(k, 3)
         r = (q - jnp.sum(Q * T[:, None, :], axis=2)) * weights[:, None]  # weighted residual
         rhs = (basis.T @ jnp.sum(Q * r[:, :, None], axis=1)).reshape(-1)
+        if penalty is not None:
+            rhs = rhs - jnp.repeat(jnp.asarray(penalty, dtype), 3) * beta
         beta = beta + solve(rhs)
 
     coeffs = beta.reshape(k, 3)
@@ -285,7 +300,7 @@ def reconstruct(
         ~jnp.all(finite) | ~jnp.all(jnp.isfinite(P)),
         Status.NONFINITE,
         jnp.where(
-            2 * n_obs < 3 * k,
+            (2 * n_obs < 3 * k) & (penalty is None),
             Status.UNDERDETERMINED,
             jnp.where(degenerate, Status.DEGENERATE, Status.OK),
         ),

@@ -6,6 +6,7 @@
 * :mod:`.covariance` - first-order covariance from pixel and camera-pose noise.
 * :mod:`.streaming` - recursive sliding-window DCT estimation for on-line use.
 * :mod:`.joint_pose` - joint 6-DoF fit of a rigid motion to all reference points' rays.
+* :mod:`.regularised` - regularised DCT: roughness penalty with a cross-validated weight.
 """
 
 from .covariance import ReconstructionCovariance as ReconstructionCovariance
@@ -17,6 +18,10 @@ from .joint_pose import kabsch_per_frame as kabsch_per_frame
 from .refine import Refined as Refined
 from .refine import refine_dct as refine_dct
 from .refine import refine_points as refine_points
+from .regularised import PenaltyChoice as PenaltyChoice
+from .regularised import reconstruct_regularised as reconstruct_regularised
+from .regularised import roughness_penalty as roughness_penalty
+from .regularised import select_penalty_cv as select_penalty_cv
 from .select_k import KSelection as KSelection
 from .select_k import select_k_cv as select_k_cv
 from .select_k import select_k_gain as select_k_gain

@@ -1,0 +1,75 @@
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import jaxtraj as jt
+from jaxtraj.estimators import reconstruct_regularised, roughness_penalty, select_penalty_cv
+from jaxtraj.sim.scene import make_scene
+
+
+@pytest.mark.parametrize("order", [1, 2, 3])
+def test_roughness_equals_integral_of_squared_derivative(rng, order):
+    times = np.sort(rng.uniform(0.0, 3.0, 40))
+    basis = jt.DCTBasis.from_times(times, 12)
+    beta = rng.normal(size=(12, 3))
+    t = np.linspace(float(basis.t0), float(basis.t1), 20001)
+    if order < 3:
+        deriv = np.asarray(basis(t, derivative=order))
+    else:  # central difference of the analytic second derivative
+        h = 1e-5
+        deriv = (np.asarray(basis(t + h, 2)) - np.asarray(basis(t - h, 2))) / (2 * h)
+    x = deriv @ beta
+    integral = np.trapezoid(np.sum(x**2, axis=1), t)
+    ours = float(np.sum(np.asarray(roughness_penalty(basis, order)) * np.sum(beta**2, axis=1)))
+    assert ours == pytest.approx(integral, rel=1e-6)
+    assert float(roughness_penalty(basis, order)[0]) == 0.0
+
+
+def test_zero_penalty_equals_plain_solve_and_jit_vmap(rng):
+    s = make_scene(jax.random.PRNGKey(2), n_frames=40, noise_px=0.3)
+    Phi = jt.dct_basis(s.times, 8)
+    plain = jt.reconstruct(s.P, s.uv, Phi, s.weights)
+    zero = jt.reconstruct(s.P, s.uv, Phi, s.weights, penalty=jnp.zeros(8))
+    np.testing.assert_allclose(zero.points, plain.points, atol=1e-12)
+    pen = jnp.linspace(0.0, 1e3, 8)
+    eager = jt.reconstruct(s.P, s.uv, Phi, s.weights, penalty=pen)
+    jitted = jax.jit(lambda p: jt.reconstruct(s.P, s.uv, Phi, s.weights, penalty=p))(pen)
+    np.testing.assert_allclose(jitted.points, eager.points, atol=1e-12)
+    pens = jnp.stack([pen, 2 * pen])
+    batched = jax.vmap(lambda p: jt.reconstruct(s.P, s.uv, Phi, s.weights, penalty=p))(pens)
+    for i in range(2):
+        one = jt.reconstruct(s.P, s.uv, Phi, s.weights, penalty=pens[i])
+        np.testing.assert_allclose(batched.points[i], one.points, atol=1e-11)
+
+
+@pytest.mark.parametrize("camera,speed", [("random", 0.3), ("smooth", 3.0)])
+def test_regularised_beats_every_fixed_k(camera, speed):
+    s = make_scene(jax.random.PRNGKey(0), camera=camera, camera_speed=speed, n_frames=80)
+    fixed = []
+    for k in (6, 10, 15, 20, 30):
+        r = jt.reconstruct(s.P, s.uv, jt.dct_basis(s.times, k), s.weights, max_gain=np.inf)
+        fixed.append(np.mean(np.linalg.norm(np.asarray(r.points - s.points), axis=1)))
+    res, basis, choice = reconstruct_regularised(s.P, s.uv, s.times, s.weights)
+    err = np.mean(np.linalg.norm(np.asarray(res.points - s.points), axis=1))
+    assert basis.k == 60 and 2 * 80 < 3 * 60  # beyond the counting bound of the plain DCT
+    assert int(res.status) == jt.Status.OK
+    assert err <= 1.05 * min(fixed), (err, fixed)
+    # The choice is an interior minimum of the cross-validation curve.
+    i = int(np.argmin(np.asarray(choice.cv_rms_px)))
+    assert 0 < i < choice.grid.shape[0] - 1
+
+
+def test_bad_input(rng):
+    s = make_scene(jax.random.PRNGKey(1), n_frames=30)
+    Phi = jt.dct_basis(s.times, 6)
+    with pytest.raises(ValueError, match=r"penalty: expected shape \(6,\)"):
+        jt.reconstruct(s.P, s.uv, Phi, s.weights, penalty=jnp.ones(5))
+    with pytest.raises(ValueError, match="penalty: must be finite and >= 0"):
+        jt.reconstruct(s.P, s.uv, Phi, s.weights, penalty=-jnp.ones(6))
+    with pytest.raises(ValueError, match="order"):
+        roughness_penalty(jt.DCTBasis.from_times(s.times, 6), order=4)
+    with pytest.raises(ValueError, match="folds"):
+        select_penalty_cv(s.P, s.uv, jt.DCTBasis.from_times(s.times, 6), s.times, folds=1)
+    with pytest.raises(ValueError, match="times"):
+        select_penalty_cv(s.P, s.uv, jt.DCTBasis.from_times(s.times, 6), s.times[:-1])
