@@ -32,7 +32,9 @@ sys.path.insert(0, str(ROOT))
 import jaxtraj as jt  # noqa: E402
 from jaxtraj.estimators import (  # noqa: E402
     refine_points,
+    roughness_penalty,
     select_k_cv,
+    select_penalty_cv,
     select_process_psd,
     smooth_points,
 )
@@ -147,6 +149,19 @@ def run(args):  # noqa: C901, RUF100
                     uv,
                 )
                 acc.setdefault("smooth_point_q", []).append((err_mm(sp, Xs), dt_p / N))
+                rb = jt.DCTBasis.from_times(times, min(F, 60))
+                lam, dt_l = timed(
+                    lambda u, P=P, t=times, rb=rb: select_penalty_cv(P, u[0], rb, t).lam, uv
+                )
+                pen = float(lam) * roughness_penalty(rb)
+                Phi_r = rb(times)
+                rr, dt_rr = timed(
+                    lambda u, P=P, Phi=Phi_r, pen=pen: (
+                        jt.reconstruct_points(P, u, Phi, penalty=pen).points
+                    ),
+                    uv,
+                )
+                acc.setdefault("dct_regularised", []).append((err_mm(rr, Xs), (dt_l + dt_rr) / N))
                 if args.stonesoup:
                     e, dt = stonesoup_baseline(P, uv[0], times, noise, Xs[0])
                     acc.setdefault("stonesoup_ukf_smoother", []).append((e, dt))

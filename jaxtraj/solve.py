@@ -368,10 +368,17 @@ def _reprojection_rms(P, uv, points, observed):
 
 
 @eqx.filter_jit
-def _reconstruct_points(P, uv, basis, weights, max_gain, refine, diagnostics):
+def _reconstruct_points(P, uv, basis, weights, max_gain, refine, diagnostics, penalty):
     def one(u, w):
         return reconstruct(
-            P, u, basis, w, max_gain=max_gain, refine=refine, diagnostics=diagnostics
+            P,
+            u,
+            basis,
+            w,
+            max_gain=max_gain,
+            refine=refine,
+            diagnostics=diagnostics,
+            penalty=penalty,
         )
 
     return jax.vmap(one)(uv, weights)
@@ -386,13 +393,16 @@ def reconstruct_points(
     max_gain: float = 20.0,
     refine: int = 1,
     diagnostics: bool = True,
+    penalty: Float[ArrayLike, " k"] | None = None,
 ) -> Reconstruction:
     """Reconstruct N point trajectories seen by the same cameras (jit-compiled, batched).
 
     Equivalent to a loop of :func:`reconstruct` over points; the per-frame sums become one
     large matrix product. Fields of the result gain a leading axis of size N.
     """
-    _validate(P, uv, basis, weights, batch=(jnp.shape(uv)[0] if jnp.ndim(uv) == 3 else None,))
+    batch = (jnp.shape(uv)[0] if jnp.ndim(uv) == 3 else None,)
+    _validate(P, uv, basis, weights, batch=batch, count_check=penalty is None)
     P_, uv_, basis_, _ = _as_arrays(P, uv, basis, None)
     w = jnp.ones(uv_.shape[:2], P_.dtype) if weights is None else jnp.asarray(weights, P_.dtype)
-    return _reconstruct_points(P_, uv_, basis_, w, max_gain, refine, diagnostics)
+    pen = None if penalty is None else jnp.asarray(penalty, P_.dtype)
+    return _reconstruct_points(P_, uv_, basis_, w, max_gain, refine, diagnostics, pen)

@@ -73,3 +73,17 @@ def test_bad_input(rng):
         select_penalty_cv(s.P, s.uv, jt.DCTBasis.from_times(s.times, 6), s.times, folds=1)
     with pytest.raises(ValueError, match="times"):
         select_penalty_cv(s.P, s.uv, jt.DCTBasis.from_times(s.times, 6), s.times[:-1])
+
+
+def test_batched_points_with_penalty_equal_loop():
+    s = make_scene(jax.random.PRNGKey(4), n_frames=30, noise_px=0.3)
+    basis = jt.DCTBasis.from_times(s.times, 25)  # 2 * 30 < 3 * 25: needs the penalty
+    Phi, pen = basis(s.times), 1e3 * roughness_penalty(basis)
+    uv = jnp.stack([s.uv, s.uv + 0.5])
+    many = jt.reconstruct_points(s.P, uv, Phi, penalty=pen)
+    for n in range(2):
+        one = jt.reconstruct(s.P, uv[n], Phi, penalty=pen)
+        np.testing.assert_allclose(many.points[n], one.points, atol=1e-11)
+    assert np.all(np.asarray(many.status) == jt.Status.OK)
+    with pytest.raises(ValueError, match="k=25 is too large"):
+        jt.reconstruct_points(s.P, uv, Phi)
