@@ -68,7 +68,15 @@ def build_parser() -> argparse.ArgumentParser:
         "--k",
         type=_positive_int,
         default=None,
-        help="number of DCT basis vectors (default: chosen for the scene, see the printed note)",
+        help="number of DCT basis vectors for --method dct (default 20)",
+    )
+    demo.add_argument(
+        "--method",
+        choices=("dct", "regularised", "smoother"),
+        default="dct",
+        help="estimator: 'dct' is the paper's plain DCT with a fixed k; 'regularised' a DCT "
+        "with a cross-validated roughness penalty (no k to choose); 'smoother' a smoothness "
+        "prior without any basis (default: dct)",
     )
     demo.add_argument(
         "--noise",

@@ -14,7 +14,7 @@ def test_demo_small_writes_results_and_meets_accuracy(tmp_path, capsys):
     text = capsys.readouterr().out
     assert "mean error" in text and "6-DoF pose" in text
     summary = json.loads((out / "summary.json").read_text())
-    assert summary["point"]["status"] == "OK"
+    assert summary["point"]["ok"] and summary["method"] == "dct"
     # 60 frames over 10 s at 0.3 px: a few millimetres at most (150 frames: ~0.5 mm).
     assert summary["point"]["mean_error_mm"] < 5.0
     assert summary["pose_6dof"]["mean_orientation_error_deg"] < 1.0
@@ -51,3 +51,16 @@ def test_console_script_help():
     )
     assert proc.returncode == 0
     assert "--frames" in proc.stdout and "--noise" in proc.stdout
+
+
+@pytest.mark.parametrize("method", ["regularised", "smoother"])
+def test_demo_better_estimators_beat_the_paper_method(tmp_path, method):
+    dct, other = tmp_path / "dct", tmp_path / method
+    base = ["demo", "--frames", "60", "--seed", "2", "--no-plots"]
+    assert main([*base, "--k", "12", "--out", str(dct)]) == EXIT_OK
+    assert main([*base, "--method", method, "--out", str(other)]) == EXIT_OK
+    a = json.loads((dct / "summary.json").read_text())["point"]
+    b = json.loads((other / "summary.json").read_text())
+    assert b["method"] == method and b["point"]["ok"]
+    assert b["point"]["mean_error_mm"] < a["mean_error_mm"]
+    assert b["point"]["max_error_mm"] < a["max_error_mm"]
