@@ -22,7 +22,7 @@ from jaxtyping import Array, ArrayLike, Float
 
 from .._checks import check_shape
 from ..basis import DCTBasis
-from ..solve import Reconstruction, reconstruct
+from ..solve import Reconstruction, _reprojection_rms, reconstruct
 
 __all__ = ["PenaltyChoice", "reconstruct_regularised", "roughness_penalty", "select_penalty_cv"]
 
@@ -93,10 +93,7 @@ def _cv(P, uv, Phi, w, rough, grid, held):
     def held_out_rms(lam, mask):
         train = jnp.where(mask, 0.0, w)
         res = reconstruct(P, uv, Phi, train, penalty=lam * rough, diagnostics=False)
-        homog = jnp.sum(P[:, :, :3] * res.points[:, None, :], axis=2) + P[:, :, 3]
-        err2 = jnp.sum((homog[:, :2] / homog[:, 2:3] - uv) ** 2, axis=1)
-        test = mask & (w > 0)
-        return jnp.sqrt(jnp.sum(jnp.where(test, err2, 0.0)) / jnp.maximum(jnp.sum(test), 1))
+        return _reprojection_rms(P, uv, res.points, mask & (w > 0))
 
     per = jax.vmap(lambda lam: jax.vmap(lambda m: held_out_rms(lam, m))(held))(grid)
     score = jnp.mean(per, axis=1)
