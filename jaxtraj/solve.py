@@ -266,7 +266,8 @@ def reconstruct(
 
     N = _kron_sum(basis, QtQ)
     if penalty is not None:
-        N = N + jnp.diag(jnp.repeat(jnp.asarray(penalty, dtype), 3))
+        pen3 = jnp.repeat(jnp.asarray(penalty, dtype), 3)  # per flattened coefficient
+        N = N + jnp.diag(pen3)
     b = (basis.T @ Qtq).reshape(-1)
 
     Linv, d = _factorise(N)
@@ -280,7 +281,7 @@ def reconstruct(
         r = (q - jnp.sum(Q * T[:, None, :], axis=2)) * weights[:, None]  # weighted residual
         rhs = (basis.T @ jnp.sum(Q * r[:, :, None], axis=1)).reshape(-1)
         if penalty is not None:
-            rhs = rhs - jnp.repeat(jnp.asarray(penalty, dtype), 3) * beta
+            rhs = rhs - pen3 * beta
         beta = beta + solve(rhs)
 
     coeffs = beta.reshape(k, 3)
