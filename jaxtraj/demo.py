@@ -36,6 +36,13 @@ def _rotation_angle_deg(R_a, R_b):
     return np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))
 
 
+def _cast(tree, dtype):
+    """Floating-point leaves of a pytree in ``dtype`` (the demo's --float32 switch)."""
+    return jax.tree_util.tree_map(
+        lambda x: x.astype(dtype) if jnp.issubdtype(x.dtype, jnp.floating) else x, tree
+    )
+
+
 def _write_json(path: Path, data: dict) -> None:
     tmp = path.with_name(path.name + ".part")
     tmp.write_text(json.dumps(data, indent=2) + "\n")
@@ -94,9 +101,7 @@ def run_demo(args: Namespace) -> int:
         standoff=(0.5, 1.5),
         extent=0.3,
     )
-    scene = jax.tree_util.tree_map(
-        lambda x: x.astype(dtype) if jnp.issubdtype(x.dtype, jnp.floating) else x, scene
-    )
+    scene = _cast(scene, dtype)
     points, rms, gain, ok_point, label = _estimate(
         args.method, scene.P, scene.uv[None], scene.times, scene.weights[None], k, args.noise
     )
@@ -107,9 +112,7 @@ def run_demo(args: Namespace) -> int:
     eta = float(reconstructibility(scene.camera_centres, scene.points, Phi))
 
     rigid = make_rigid_scene(k_rigid, camera="random", n_frames=F, noise_px=args.noise)
-    rigid = jax.tree_util.tree_map(
-        lambda x: x.astype(dtype) if jnp.issubdtype(x.dtype, jnp.floating) else x, rigid
-    )
+    rigid = _cast(rigid, dtype)
     marker_points, _, _, ok_markers, _ = _estimate(
         args.method,
         rigid.P,
