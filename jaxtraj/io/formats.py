@@ -1,0 +1,1139 @@
+"""Readers and writers of the individual files of a recording (exact round trips).
+
+Every ``read_X`` stops bad input with one :class:`~jaxtraj.io.tables.RecordingError`
+naming the file, the line (CSV, YAML, JSON syntax) or key (JSON) and the problem. Every
+``write_X`` writes atomically and with enough digits that ``read_X(write_X(x)) == x``
+exactly (floats use Python's shortest round-trip repr).
+
+Files (see :mod:`jaxtraj.io.recording` for the folder):
+
+* ``imu.csv``: ``t,wx,wy,wz,ax,ay,az`` (s, rad/s, m/s^2, IMU frame) or EuRoC's
+  ``#timestamp [ns],w_RS_S_x [rad s^-1],...,a_RS_S_z [m s^-2]``.
+* ``robot.csv``: flange poses ``T_w_f``, ``t,x,y,z,qw,qx,qy,qz`` (m, unit quaternion w
+  first) or KUKA ``t,X,Y,Z,A,B,C`` (mm, degrees, R = Rz(A) Ry(B) Rx(C)).
+* poses CSV ``t,x,y,z,qw,qx,qy,qz`` and TUM ``timestamp tx ty tz qx qy qz qw``.
+* ``camera.json`` (or OpenCV's ``camera.yaml``), ``object.json``, ``recording.json``.
+* ``detections.csv`` ``frame,t,id,u,v``; ``images.csv`` ``frame,t,file``;
+  ``points.csv`` ``frame,t,id,x,y,z,ok``.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import re
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from .records import CameraCalibration, Detections, ObjectModel, PoseStream
+from .tables import (
+    RecordingError,
+    Table,
+    _check_file,
+    _show,
+    atomic_write_text,
+    read_header,
+    read_table,
+    write_table,
+)
+
+__all__ = [
+    "ImuNoise",
+    "ImuSamples",
+    "ReconstructedPoints",
+    "RecordingMeta",
+    "RobotNoise",
+    "kuka_to_pose",
+    "pose_to_kuka",
+    "read_camera",
+    "read_detections",
+    "read_image_index",
+    "read_imu",
+    "read_meta",
+    "read_object",
+    "read_points",
+    "read_poses",
+    "read_robot",
+    "read_tum",
+    "write_camera",
+    "write_detections",
+    "write_image_index",
+    "write_imu",
+    "write_json",
+    "write_meta",
+    "write_object",
+    "write_points",
+    "write_poses",
+    "write_robot",
+    "write_tum",
+]
+
+# --------------------------------------------------------------------------- IMU
+
+IMU_COLUMNS = ("t", "wx", "wy", "wz", "ax", "ay", "az")
+EUROC_IMU_COLUMNS = (
+    "timestamp [ns]",
+    "w_RS_S_x [rad s^-1]",
+    "w_RS_S_y [rad s^-1]",
+    "w_RS_S_z [rad s^-1]",
+    "a_RS_S_x [m s^-2]",
+    "a_RS_S_y [m s^-2]",
+    "a_RS_S_z [m s^-2]",
+)
+
+
+@dataclass(frozen=True)
+class ImuSamples:
+    """IMU samples in the IMU frame.
+
+    Attributes:
+        t: (N,) times [s], strictly increasing.
+        gyro: (N, 3) angular rate [rad/s].
+        accel: (N, 3) specific force [m/s^2].
+        t0_ns: for files with nanosecond stamps (EuRoC), the stamp [ns] of ``t = 0``.
+    """
+
+    t: np.ndarray
+    gyro: np.ndarray
+    accel: np.ndarray
+    t0_ns: int | None = None
+
+    def __post_init__(self):
+        t = np.asarray(self.t, np.float64)
+        if t.ndim != 1:
+            raise ValueError(f"t: expected shape (n,), got {t.shape}")
+        for name in ("gyro", "accel"):
+            arr = np.asarray(getattr(self, name), np.float64)
+            if arr.shape != (t.shape[0], 3):
+                raise ValueError(f"{name}: expected shape ({t.shape[0]}, 3), got {arr.shape}")
+            object.__setattr__(self, name, arr)
+        if np.any(np.diff(t) <= 0):
+            raise ValueError("t: expected strictly increasing times")
+        object.__setattr__(self, "t", t)
+
+
+def read_imu(path: str | Path, t0_ns: int | None = None) -> ImuSamples:
+    """Read ``imu.csv`` (``t,wx,wy,wz,ax,ay,az`` in s, or EuRoC's ns form).
+
+    Args:
+        path: the file.
+        t0_ns: for EuRoC files, the stamp [ns] that becomes ``t = 0`` (default: the first
+            sample); ignored for files in seconds.
+    """
+    _, cells = read_header(path, IMU_COLUMNS + EUROC_IMU_COLUMNS)
+    if EUROC_IMU_COLUMNS[0] in cells:
+        aliases = dict(zip(IMU_COLUMNS, ([c] for c in EUROC_IMU_COLUMNS), strict=True))
+        kinds = {c: "float" for c in IMU_COLUMNS} | {"t": "int64ns"}
+        tab = read_table(path, kinds, aliases=aliases, strictly_increasing="t")
+        t_ns = tab["t"]
+        t0 = int(t_ns[0]) if t0_ns is None else int(t0_ns)
+        t = (t_ns - np.int64(t0)) / 1e9  # integer difference first: keeps ns precision
+    else:
+        tab = read_table(path, dict.fromkeys(IMU_COLUMNS, "float"), strictly_increasing="t")
+        t, t0 = tab["t"], None
+    gyro = np.stack([tab["wx"], tab["wy"], tab["wz"]], 1)
+    accel = np.stack([tab["ax"], tab["ay"], tab["az"]], 1)
+    return ImuSamples(t=t, gyro=gyro, accel=accel, t0_ns=t0)
+
+
+def write_imu(path: str | Path, imu: ImuSamples) -> None:
+    """Write ``imu.csv`` in the ``t,wx,wy,wz,ax,ay,az`` form (seconds)."""
+    write_table(path, list(IMU_COLUMNS), [imu.t, *imu.gyro.T, *imu.accel.T])
+
+
+# --------------------------------------------------------------------- rotations
+
+
+def _quat_mul(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    w1, v1, w2, v2 = a[:, :1], a[:, 1:], b[:, :1], b[:, 1:]
+    return np.concatenate(
+        [w1 * w2 - np.sum(v1 * v2, 1, keepdims=True), w1 * v2 + w2 * v1 + np.cross(v1, v2)], 1
+    )
+
+
+def _axis_quat(angle: np.ndarray, axis: int) -> np.ndarray:
+    q = np.zeros((angle.shape[0], 4))
+    q[:, 0] = np.cos(angle / 2)
+    q[:, 1 + axis] = np.sin(angle / 2)
+    return q
+
+
+def _quat_to_matrix(q: np.ndarray) -> np.ndarray:
+    q = q / np.linalg.norm(q, axis=-1, keepdims=True)
+    w, x, y, z = np.moveaxis(q, -1, 0)
+    return np.stack(
+        [
+            np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)], -1),
+            np.stack([2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)], -1),
+            np.stack([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], -1),
+        ],
+        -2,
+    )
+
+
+def kuka_to_pose(xyzabc: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """KUKA ``X, Y, Z, A, B, C`` to position and quaternion.
+
+    ``R = Rz(A) @ Ry(B) @ Rx(C)`` (intrinsic Z-Y'-X'' Euler angles).
+
+    Args:
+        xyzabc: (N, 6) X, Y, Z [mm] and A, B, C [deg].
+
+    Returns:
+        ``(p, q)``: (N, 3) positions [m] and (N, 4) unit quaternions (w, x, y, z), w >= 0.
+    """
+    v = np.asarray(xyzabc, np.float64)
+    if v.ndim != 2 or v.shape[1] != 6:
+        raise ValueError(f"xyzabc: expected shape (n, 6), got {v.shape}")
+    a, b, c = np.deg2rad(v[:, 3]), np.deg2rad(v[:, 4]), np.deg2rad(v[:, 5])
+    q = _quat_mul(_quat_mul(_axis_quat(a, 2), _axis_quat(b, 1)), _axis_quat(c, 0))
+    q = np.where(q[:, :1] < 0, -q, q)
+    return v[:, :3] / 1000.0, q
+
+
+def pose_to_kuka(p: np.ndarray, q: np.ndarray) -> np.ndarray:
+    """Position and quaternion to KUKA ``X, Y, Z, A, B, C`` (inverse of :func:`kuka_to_pose`).
+
+    A and C lie in (-180, 180], B in [-90, 90]. At gimbal lock (B = +-90 deg, where only
+    A - C or A + C is defined) C is set to 0 and the whole turn about z goes into A.
+
+    Args:
+        p: (N, 3) positions [m]; q: (N, 4) quaternions (w, x, y, z) (normalised here).
+
+    Returns:
+        (N, 6): X, Y, Z [mm], A, B, C [deg].
+    """
+    p = np.asarray(p, np.float64)
+    q = np.asarray(q, np.float64)
+    if p.ndim != 2 or p.shape[1] != 3:
+        raise ValueError(f"p: expected shape (n, 3), got {p.shape}")
+    if q.shape != (p.shape[0], 4):
+        raise ValueError(f"q: expected shape ({p.shape[0]}, 4), got {q.shape}")
+    R = _quat_to_matrix(q)
+    cos_b = np.hypot(R[:, 0, 0], R[:, 1, 0])
+    b = np.arctan2(-R[:, 2, 0], cos_b)
+    lock = cos_b < 1e-10
+    a = np.where(lock, np.arctan2(-R[:, 0, 1], R[:, 1, 1]), np.arctan2(R[:, 1, 0], R[:, 0, 0]))
+    # C from what is left after removing Rz(A) Ry(B): errors in A are absorbed by C.
+    Ra = _quat_to_matrix(_quat_mul(_axis_quat(a, 2), _axis_quat(b, 1)))
+    M = np.einsum("nji,njk->nik", Ra, R)
+    c = np.arctan2(M[:, 2, 1], M[:, 1, 1])
+    angles = np.rad2deg(np.stack([a, b, c], 1))
+    angles = np.where(angles <= -180.0, angles + 360.0, angles)
+    return np.concatenate([p * 1000.0, angles], 1)
+
+
+# ------------------------------------------------------------------------- poses
+
+POSE_COLUMNS = ("t", "x", "y", "z", "qw", "qx", "qy", "qz")
+KUKA_COLUMNS = ("t", "X", "Y", "Z", "A", "B", "C")
+
+
+def _unit_quaternions(tab: Table, q: np.ndarray) -> np.ndarray:
+    norm = np.linalg.norm(q, axis=1)
+    bad = np.flatnonzero(np.abs(norm - 1.0) > 1e-3)
+    if bad.size:
+        r = int(bad[0])
+        raise tab.error(
+            r, f"quaternion norm {norm[r]:.6g}: expected a unit quaternion (norm within 1e-3 of 1)"
+        )
+    return q / norm[:, None]
+
+
+def _read_pose_table(path: str | Path, *, sep: str | None = ",", header: bool = True):
+    tab = read_table(
+        path, dict.fromkeys(POSE_COLUMNS, "float"), strictly_increasing="t", sep=sep, header=header
+    )
+    p = np.stack([tab["x"], tab["y"], tab["z"]], 1)
+    q = _unit_quaternions(tab, np.stack([tab["qw"], tab["qx"], tab["qy"], tab["qz"]], 1))
+    return PoseStream(times=tab["t"], p=p, q=q)
+
+
+def read_poses(path: str | Path) -> PoseStream:
+    """Read a pose CSV ``t,x,y,z,qw,qx,qy,qz`` (s, m, unit quaternion w first)."""
+    return _read_pose_table(path)
+
+
+def write_poses(path: str | Path, poses: PoseStream) -> None:
+    """Write a pose CSV ``t,x,y,z,qw,qx,qy,qz``."""
+    write_table(path, list(POSE_COLUMNS), [poses.times, *poses.p.T, *poses.q.T])
+
+
+def read_robot(path: str | Path) -> PoseStream:
+    """Read ``robot.csv``: flange poses ``T_w_f``; the header picks the form.
+
+    ``t,x,y,z,qw,qx,qy,qz`` (m, unit quaternion w first) or KUKA ``t,X,Y,Z,A,B,C`` (mm,
+    degrees, R = Rz(A) Ry(B) Rx(C)).
+    """
+    line, cells = read_header(path, POSE_COLUMNS + KUKA_COLUMNS)
+    if "A" in cells and "qw" not in cells:
+        tab = read_table(path, dict.fromkeys(KUKA_COLUMNS, "float"), strictly_increasing="t")
+        p, q = kuka_to_pose(np.stack([tab[c] for c in KUKA_COLUMNS[1:]], 1))
+        return PoseStream(times=tab["t"], p=p, q=q)
+    if "qw" not in cells:
+        raise RecordingError(
+            path,
+            line,
+            f"unknown robot pose header {','.join(cells)}: expected "
+            f"{','.join(POSE_COLUMNS)} or KUKA {','.join(KUKA_COLUMNS)}",
+        )
+    return _read_pose_table(path)
+
+
+def write_robot(path: str | Path, poses: PoseStream, *, kuka: bool = False) -> None:
+    """Write ``robot.csv`` as ``t,x,y,z,qw,qx,qy,qz`` or, with ``kuka=True``, ``t,X,Y,Z,A,B,C``."""
+    if not kuka:
+        write_poses(path, poses)
+        return
+    v = pose_to_kuka(poses.p, poses.q)
+    write_table(path, list(KUKA_COLUMNS), [poses.times, *v.T])
+
+
+def read_tum(path: str | Path) -> PoseStream:
+    """Read a TUM trajectory: ``timestamp tx ty tz qx qy qz qw`` per line, ``#`` comments."""
+    path = _check_file(path)
+    tum = ("t", "x", "y", "z", "qx", "qy", "qz", "qw")
+    tab = read_table(
+        path, dict.fromkeys(tum, "float"), strictly_increasing="t", sep=None, header=False
+    )
+    p = np.stack([tab["x"], tab["y"], tab["z"]], 1)
+    q = _unit_quaternions(tab, np.stack([tab["qw"], tab["qx"], tab["qy"], tab["qz"]], 1))
+    return PoseStream(times=tab["t"], p=p, q=q)
+
+
+def write_tum(path: str | Path, poses: PoseStream) -> None:
+    """Write a TUM trajectory (quaternion order x, y, z, w in the file)."""
+    cols = [poses.times, *poses.p.T, poses.q[:, 1], poses.q[:, 2], poses.q[:, 3], poses.q[:, 0]]
+    rows = zip(*([repr(v) for v in c.tolist()] for c in cols), strict=True)
+    body = "".join(" ".join(r) + "\n" for r in rows)
+    atomic_write_text(path, "# timestamp tx ty tz qx qy qz qw\n" + body)
+
+
+# ------------------------------------------------------------------------- JSON
+
+
+def _to_json(value: Any) -> Any:
+    if isinstance(value, Mapping):
+        return {str(k): _to_json(v) for k, v in value.items()}
+    if isinstance(value, np.ndarray):
+        return _to_json(value.tolist())
+    if isinstance(value, (list, tuple)):
+        return [_to_json(v) for v in value]
+    if isinstance(value, np.generic):
+        return _to_json(value.item())
+    if isinstance(value, float) and not math.isfinite(value):
+        return None
+    if isinstance(value, Path):
+        return str(value)
+    if hasattr(value, "__dataclass_fields__"):
+        return _to_json({k: getattr(value, k) for k in value.__dataclass_fields__})
+    return value
+
+
+def write_json(path: str | Path, data: Any) -> None:
+    """Write ``data`` as indented JSON atomically (NumPy scalars/arrays, Paths and
+    dataclasses converted; NaN and inf written as null)."""
+    text = json.dumps(_to_json(data), indent=2, allow_nan=False)
+    atomic_write_text(path, text + "\n")
+
+
+def _read_json(path: str | Path, fmt: str) -> tuple[Path, dict]:
+    path = _check_file(path)
+    try:
+        data = json.loads(path.read_text(encoding="utf-8-sig"))
+    except json.JSONDecodeError as err:
+        raise RecordingError(
+            path, err.lineno, f"invalid JSON: {err.msg} (column {err.colno})"
+        ) from None
+    except UnicodeDecodeError as err:
+        raise RecordingError(path, None, f"not UTF-8 text ({err.reason})") from None
+    if not isinstance(data, dict):
+        raise RecordingError(path, None, f"expected a JSON object, got {type(data).__name__}")
+    if data.get("format") != fmt:
+        raise RecordingError(
+            path, None, f'key "format": expected "{fmt}", got {json.dumps(data.get("format"))}'
+        )
+    if data.get("version") != 1:
+        raise RecordingError(
+            path, None, f'key "version": expected 1, got {json.dumps(data.get("version"))}'
+        )
+    return path, data
+
+
+def _check_keys(path: Path, data: dict, known: Sequence[str], where: str = "") -> None:
+    unknown = [k for k in data if k not in known]
+    if unknown:
+        raise RecordingError(
+            path,
+            None,
+            f"unknown key(s) {', '.join(map(repr, unknown))}{where}; known keys: "
+            f"{', '.join(known)}",
+        )
+
+
+def _number(path: Path, key: str, value: Any, *, positive=False, nonneg=False) -> float:
+    ok = isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
+    if not ok or (positive and value <= 0) or (nonneg and value < 0):
+        want = "a positive" if positive else "a non-negative" if nonneg else "a finite"
+        raise RecordingError(
+            path, None, f'key "{key}": expected {want} number, got {json.dumps(value)}'
+        )
+    return float(value)
+
+
+def _matrix(path: Path, key: str, value: Any, shape: tuple[int, ...]) -> np.ndarray:
+    try:
+        arr = np.asarray(value, dtype=np.float64)
+        good = arr.shape == shape and np.all(np.isfinite(arr))
+        good = good and not _has_bool(value)
+    except (TypeError, ValueError):
+        good = False
+    if not good:
+        want = "x".join(map(str, shape))
+        raise RecordingError(
+            path, None, f'key "{key}": expected {want} finite numbers, got {json.dumps(value)}'
+        )
+    return arr
+
+
+def _has_bool(value: Any) -> bool:
+    if isinstance(value, list):
+        return any(_has_bool(v) for v in value)
+    return isinstance(value, bool)
+
+
+# ------------------------------------------------------------------------ camera
+
+CAMERA_KEYS = ("format", "version", "image_size", "K", "dist", "rms_px", "T_f_c", "T_i_c")
+
+
+def _check_rigid(path: Path, key: str, T: np.ndarray | None) -> None:
+    """A rigid (4, 4) transform: orthonormal rotation with det +1, last row 0 0 0 1."""
+    if T is None:
+        return
+    R = T[:3, :3]
+    if np.max(np.abs(R.T @ R - np.eye(3))) > 1e-6 or np.linalg.det(R) <= 0:
+        raise RecordingError(
+            path, None, f'key "{key}": rotation part not orthonormal (within 1e-6) with det +1'
+        )
+    if not np.array_equal(T[3], [0.0, 0.0, 0.0, 1.0]):
+        raise RecordingError(
+            path, None, f'key "{key}": last row must be 0 0 0 1, got {T[3].tolist()}'
+        )
+
+
+def _rigid_or_none(path: Path, key: str, value: Any) -> np.ndarray | None:
+    """A JSON 4x4 rigid transform or null."""
+    if value is None:
+        return None
+    T = _matrix(path, key, value, (4, 4))
+    _check_rigid(path, key, T)
+    return T
+
+
+def _check_camera(path: Path, K, dist, size, rms, T_f_c, T_i_c) -> CameraCalibration:
+    w, h = size
+    if K[1, 0] != 0 or K[2, 0] != 0 or K[2, 1] != 0 or abs(K[2, 2] - 1) > 1e-12:
+        raise RecordingError(
+            path, None, f'key "K": expected [[fx, s, cx], [0, fy, cy], [0, 0, 1]], got {K.tolist()}'
+        )
+    if K[0, 0] <= 0 or K[1, 1] <= 0:
+        raise RecordingError(
+            path, None, f'key "K": expected positive fx, fy, got {_show(K[0, 0])}, {_show(K[1, 1])}'
+        )
+    if not (-0.5 <= K[0, 2] <= w - 0.5 and -0.5 <= K[1, 2] <= h - 0.5):
+        raise RecordingError(
+            path,
+            None,
+            f'key "K": principal point ({_show(K[0, 2])}, {_show(K[1, 2])}) '
+            f"outside the {w}x{h} image",
+        )
+    for key, T in (("T_f_c", T_f_c), ("T_i_c", T_i_c)):
+        _check_rigid(path, key, T)
+    return CameraCalibration(
+        K=K, dist=dist, image_size=(w, h), rms_px=rms, T_f_c=T_f_c, T_i_c=T_i_c
+    )
+
+
+def _image_size(path: Path, key: str, value: Any) -> tuple[int, int]:
+    if (
+        not isinstance(value, list)
+        or len(value) != 2
+        or not all(isinstance(v, int) and not isinstance(v, bool) and v > 0 for v in value)
+    ):
+        raise RecordingError(
+            path,
+            None,
+            f'key "{key}": expected [width, height] positive integers, got {json.dumps(value)}',
+        )
+    return value[0], value[1]
+
+
+def _dist(path: Path, key: str, value: Any) -> np.ndarray:
+    arr = np.ravel(np.asarray(value, np.float64)) if isinstance(value, list) else None
+    if arr is None or arr.size not in (4, 5, 8, 12, 14) or not np.all(np.isfinite(arr)):
+        raise RecordingError(
+            path,
+            None,
+            f'key "{key}": expected 4 or 5 finite coefficients (k1, k2, p1, p2[, k3]), '
+            f"got {json.dumps(value) if isinstance(value, list) else value!r}",
+        )
+    if arr.size > 5:
+        if np.any(arr[5:] != 0):
+            raise RecordingError(
+                path,
+                None,
+                f'key "{key}": only the 5-coefficient model (k1, k2, p1, p2, k3) is '
+                f"supported, got non-zero higher coefficients {arr[5:].tolist()}",
+            )
+        arr = arr[:5]
+    return arr
+
+
+def read_camera(path: str | Path) -> CameraCalibration:
+    """Read ``camera.json`` or, for a ``.yaml``/``.yml`` suffix, an OpenCV calibration file.
+
+    Checks: K upper triangular with positive fx, fy and K[2, 2] = 1; principal point inside
+    the image; finite numbers; ``T_f_c``/``T_i_c`` rigid (R orthonormal within 1e-6, last
+    row 0 0 0 1).
+    """
+    if Path(path).suffix.lower() in (".yaml", ".yml"):
+        return _read_opencv_yaml(Path(path))
+    path, data = _read_json(path, "jaxtraj-camera")
+    _check_keys(path, data, CAMERA_KEYS)
+    for key in ("image_size", "K"):
+        if key not in data:
+            raise RecordingError(path, None, f'missing key "{key}"')
+    size = _image_size(path, "image_size", data["image_size"])
+    K = _matrix(path, "K", data["K"], (3, 3))
+    dist = _dist(path, "dist", data.get("dist", [0.0] * 5))
+    rms = data.get("rms_px")
+    rms = None if rms is None else _number(path, "rms_px", rms, nonneg=True)
+    T = {}
+    for key in ("T_f_c", "T_i_c"):
+        value = data.get(key)
+        T[key] = None if value is None else _matrix(path, key, value, (4, 4))
+    return _check_camera(path, K, dist, size, rms, T["T_f_c"], T["T_i_c"])
+
+
+def write_camera(path: str | Path, cal: CameraCalibration) -> None:
+    """Write ``camera.json`` (always JSON, whatever the suffix)."""
+    write_json(
+        path,
+        {
+            "format": "jaxtraj-camera",
+            "version": 1,
+            "image_size": list(cal.image_size),
+            "K": cal.K,
+            "dist": cal.dist,
+            "rms_px": cal.rms_px,
+            "T_f_c": cal.T_f_c,
+            "T_i_c": cal.T_i_c,
+        },
+    )
+
+
+_YAML_KEY = re.compile(r"^(\s*)([A-Za-z_][\w\-]*)\s*:\s*(.*)$")
+
+
+def _parse_opencv_yaml(path: Path) -> dict[str, tuple[int, Any]]:
+    """The top-level keys of an OpenCV FileStorage YAML file: key -> (line, value).
+
+    Values are a string (scalar) or, for a nested block (``!!opencv-matrix``), a dict
+    key -> (line, string). Flow lists ``[ ... ]`` may span lines.
+    """
+    lines = path.read_text(encoding="utf-8-sig").split("\n")
+    out: dict[str, tuple[int, Any]] = {}
+    block: dict | None = None
+    i = 0
+    while i < len(lines):
+        lineno, raw = i + 1, lines[i].split("#", 1)[0].rstrip()
+        i += 1
+        if not raw.strip() or raw.startswith("%") or raw.strip() in ("---", "..."):
+            continue
+        m = _YAML_KEY.match(raw)
+        if not m:
+            raise RecordingError(
+                path, lineno, f"cannot parse line as 'key: value': {raw.strip()!r}"
+            )
+        indent, key, value = m.groups()
+        if value.startswith("["):  # flow list, possibly over several lines
+            while value.count("[") > value.count("]"):
+                if i >= len(lines):
+                    raise RecordingError(path, lineno, f"key {key}: '[' is never closed")
+                value += " " + lines[i].split("#", 1)[0].strip()
+                i += 1
+        if not indent:
+            if key in out:
+                raise RecordingError(path, lineno, f"key {key} appears twice")
+            if value in ("", "!!opencv-matrix") or value.startswith("!!"):
+                block = {}
+                out[key] = (lineno, block)
+            else:
+                block = None
+                out[key] = (lineno, value.strip().strip("\"'"))
+        else:
+            if block is None:
+                raise RecordingError(path, lineno, f"unexpected indented key {key}")
+            block[key] = (lineno, value.strip())
+    return out
+
+
+def _yaml_matrix(
+    path: Path, key: str, entry: tuple[int, Any], shape: tuple[int, ...]
+) -> np.ndarray:
+    lineno, value = entry
+    if not isinstance(value, dict) or "data" not in value:
+        raise RecordingError(
+            path, lineno, f"key {key}: expected an !!opencv-matrix with rows, cols, data"
+        )
+    data_line, data = value["data"]
+    text = data.strip()
+    if not (text.startswith("[") and text.endswith("]")):
+        raise RecordingError(path, data_line, f"key {key}: data must be a [ ... ] list")
+    try:
+        numbers = [float(v) for v in text[1:-1].replace(",", " ").split()]
+    except ValueError as err:
+        raise RecordingError(path, data_line, f"key {key}: bad number in data ({err})") from None
+    try:
+        rows = int(value.get("rows", (0, len(numbers)))[1])
+        cols = int(value.get("cols", (0, 1))[1])
+    except ValueError:
+        raise RecordingError(path, lineno, f"key {key}: rows and cols must be integers") from None
+    if rows * cols != len(numbers):
+        raise RecordingError(
+            path,
+            data_line,
+            f"key {key}: rows x cols = {rows}x{cols} but data has {len(numbers)} numbers",
+        )
+    arr = np.asarray(numbers, np.float64)
+    if not np.all(np.isfinite(arr)):
+        raise RecordingError(path, data_line, f"key {key}: expected finite numbers")
+    if shape and arr.size != math.prod(shape):
+        want = "x".join(map(str, shape))
+        raise RecordingError(
+            path, lineno, f"key {key}: expected a {want} matrix, got {rows}x{cols}"
+        )
+    return arr.reshape(shape) if shape else arr
+
+
+def _read_opencv_yaml(path: Path) -> CameraCalibration:
+    path = _check_file(path)
+    try:
+        doc = _parse_opencv_yaml(path)
+    except UnicodeDecodeError as err:
+        raise RecordingError(path, None, f"not UTF-8 text ({err.reason})") from None
+    for key in ("camera_matrix", "image_width", "image_height"):
+        if key not in doc:
+            raise RecordingError(
+                path,
+                None,
+                f"missing key {key} (an OpenCV calibration file needs camera_matrix, "
+                "distortion_coefficients, image_width, image_height)",
+            )
+    size = []
+    for key in ("image_width", "image_height"):
+        lineno, value = doc[key]
+        if not isinstance(value, str) or not value.isdigit() or int(value) <= 0:
+            raise RecordingError(
+                path, lineno, f"key {key}: expected a positive integer, got {value!r}"
+            )
+        size.append(int(value))
+    K = _yaml_matrix(path, "camera_matrix", doc["camera_matrix"], (3, 3))
+    dist = np.zeros(5)
+    if "distortion_coefficients" in doc:
+        entry = doc["distortion_coefficients"]
+        arr = _yaml_matrix(path, "distortion_coefficients", entry, ())
+        try:
+            dist = _dist(path, "distortion_coefficients", arr.tolist())
+        except RecordingError as err:
+            raise RecordingError(path, entry[0], err.problem) from None
+    rms = None
+    for key in ("avg_reprojection_error", "rms_px"):
+        if key in doc:
+            lineno, value = doc[key]
+            try:
+                rms = float(value)
+            except (TypeError, ValueError):
+                raise RecordingError(
+                    path, lineno, f"key {key}: expected a number, got {value!r}"
+                ) from None
+    T = {k: _yaml_matrix(path, k, doc[k], (4, 4)) if k in doc else None for k in ("T_f_c", "T_i_c")}
+    return _check_camera(path, K, dist, (size[0], size[1]), rms, T["T_f_c"], T["T_i_c"])
+
+
+# ------------------------------------------------------------------------ object
+
+OBJECT_KEYS = ("format", "version", "marker_dictionary", "marker_size", "assembly_point", "points")
+
+
+def read_object(path: str | Path) -> ObjectModel:
+    """Read ``object.json``: the workpiece's reference points in the object frame [m]."""
+    path, data = _read_json(path, "jaxtraj-object")
+    _check_keys(path, data, OBJECT_KEYS)
+    points = data.get("points")
+    if not isinstance(points, list) or len(points) < 3:
+        raise RecordingError(
+            path, None, 'key "points": expected a list of >= 3 {"id", "xyz"} objects'
+        )
+    ids, xyz = [], []
+    for n, item in enumerate(points):
+        key = f"points[{n}]"
+        if not isinstance(item, dict):
+            raise RecordingError(
+                path, None, f'key "{key}": expected {{"id": int, "xyz": [x, y, z]}}'
+            )
+        _check_keys(path, item, ("id", "xyz"), f" in {key}")
+        pid = item.get("id")
+        if not isinstance(pid, int) or isinstance(pid, bool):
+            raise RecordingError(
+                path, None, f'key "{key}.id": expected an integer, got {json.dumps(pid)}'
+            )
+        if pid in ids:
+            raise RecordingError(path, None, f'key "{key}.id": id {pid} appears twice')
+        ids.append(pid)
+        xyz.append(_matrix(path, f"{key}.xyz", item.get("xyz"), (3,)))
+    size = data.get("marker_size")
+    dictionary = data.get("marker_dictionary", "DICT_4X4_50")
+    if not isinstance(dictionary, str) or not dictionary:
+        raise RecordingError(
+            path, None, f'key "marker_dictionary": expected a name, got {json.dumps(dictionary)}'
+        )
+    return ObjectModel(
+        ids=np.asarray(ids, np.int64),
+        points=np.asarray(xyz),
+        assembly_point=_matrix(path, "assembly_point", data.get("assembly_point", [0.0] * 3), (3,)),
+        marker_dictionary=dictionary,
+        marker_size=None if size is None else _number(path, "marker_size", size, positive=True),
+    )
+
+
+def write_object(path: str | Path, model: ObjectModel) -> None:
+    """Write ``object.json``."""
+    write_json(
+        path,
+        {
+            "format": "jaxtraj-object",
+            "version": 1,
+            "marker_dictionary": model.marker_dictionary,
+            "marker_size": model.marker_size,
+            "assembly_point": model.assembly_point,
+            "points": [
+                {"id": int(i), "xyz": p} for i, p in zip(model.ids, model.points, strict=True)
+            ],
+        },
+    )
+
+
+# -------------------------------------------------------------------- detections
+
+DETECTION_COLUMNS = {"frame": "int", "t": "float", "id": "int", "u": "float", "v": "float"}
+
+
+def _frame_checks(tab: Table, frame: np.ndarray, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Check that rows come grouped by increasing frame with one, increasing, t per frame."""
+    back = np.flatnonzero(frame[1:] < frame[:-1])
+    if back.size:
+        r = int(back[0]) + 1
+        raise tab.error(
+            r, f"column frame: frames must be increasing ({frame[r]} after {frame[r - 1]})"
+        )
+    same = frame[1:] == frame[:-1]
+    diff_t = np.flatnonzero(same & (t[1:] != t[:-1]))
+    if diff_t.size:
+        r = int(diff_t[0]) + 1
+        raise tab.error(
+            r,
+            f"column t: frame {frame[r]} has t = {_show(t[r])} here but {_show(t[r - 1])} on line "
+            f"{tab.lines[r - 1]} (all rows of a frame need the same t)",
+        )
+    start = np.concatenate([[0], np.flatnonzero(~same) + 1])
+    ft = t[start]
+    bad = np.flatnonzero(ft[1:] <= ft[:-1])
+    if bad.size:
+        r = int(start[bad[0] + 1])
+        word = "duplicate timestamp" if t[r] == t[r - 1] else "timestamp goes backwards"
+        raise tab.error(
+            r, f"column t: {word} ({_show(t[r])} after {_show(t[r - 1])} of frame {frame[r - 1]})"
+        )
+    return start, frame[start]
+
+
+def _duplicate_pairs(tab: Table, frame: np.ndarray, ids: np.ndarray, what: str) -> None:
+    order = np.lexsort((tab.lines, ids, frame))
+    dup = np.flatnonzero(
+        (frame[order][1:] == frame[order][:-1]) & (ids[order][1:] == ids[order][:-1])
+    )
+    if dup.size:
+        a, b = order[dup[0]], order[dup[0] + 1]
+        raise tab.error(
+            b, f"duplicate {what} for frame {frame[b]}, id {ids[b]} (also on line {tab.lines[a]})"
+        )
+
+
+def read_detections(
+    path: str | Path,
+    model_ids: np.ndarray | ObjectModel,
+    *,
+    frame_times: tuple[np.ndarray, np.ndarray] | None = None,
+    ignore_unknown: bool = False,
+) -> Detections:
+    """Read ``detections.csv`` (``frame,t,id,u,v``, one row per detected reference point).
+
+    Args:
+        path: the file.
+        model_ids: (M,) the object model's ids (or the :class:`ObjectModel`); the columns of
+            the result follow this order.
+        frame_times: optional ``(frames (F,), times (F,))`` from ``images.csv``: every
+            frame appears in the result (frames without rows: nothing detected), and each
+            file row's t must match its frame's time (within 1 us).
+        ignore_unknown: drop rows whose id is not in the model instead of raising.
+
+    Returns:
+        :class:`Detections` with uv (F, M, 2) [px] (0 where not detected).
+    """
+    ids_model = np.asarray(getattr(model_ids, "ids", model_ids), np.int64)
+    tab = read_table(path, DETECTION_COLUMNS)
+    frame, t, pid = tab["frame"], tab["t"], tab["id"]
+    known = np.isin(pid, ids_model)
+    if not np.all(known):
+        if not ignore_unknown:
+            r = int(np.flatnonzero(~known)[0])
+            raise tab.error(
+                r,
+                f"column id: {pid[r]} is not a reference point of the object model "
+                f"(ids {ids_model.tolist()})",
+            )
+        keep = np.flatnonzero(known)
+        tab = Table(tab.path, tab.lines[keep], {k: v[keep] for k, v in tab.items()})
+        frame, t, pid = tab["frame"], tab["t"], tab["id"]
+    if frame.size:
+        start, frames_seen = _frame_checks(tab, frame, t)
+        _duplicate_pairs(tab, frame, pid, "detection")
+    else:
+        start, frames_seen = np.zeros(0, np.int64), np.zeros(0, np.int64)
+    if frame_times is None:
+        frames, times = frames_seen, t[start]
+    else:
+        frames = np.asarray(frame_times[0], np.int64)
+        times = np.asarray(frame_times[1], np.float64)
+        if frames.ndim != 1 or times.shape != frames.shape or np.any(np.diff(frames) <= 0):
+            raise ValueError(
+                "frame_times: expected (frames (F,) strictly increasing, times (F,)), got "
+                f"shapes {frames.shape} and {times.shape}"
+            )
+        pos = np.searchsorted(frames, frame)
+        missing = (pos >= frames.size) | (frames[np.minimum(pos, frames.size - 1)] != frame)
+        if np.any(missing):
+            r = int(np.flatnonzero(missing)[0])
+            raise tab.error(r, f"column frame: frame {frame[r]} is not in the image index")
+        off = np.abs(times[pos] - t) > 1e-6
+        if np.any(off):
+            r = int(np.flatnonzero(off)[0])
+            raise tab.error(
+                r,
+                f"column t: {_show(t[r])} differs from the image index time {_show(times[pos[r]])} "
+                f"of frame {frame[r]}",
+            )
+    row = np.searchsorted(frames, frame)
+    col = np.searchsorted(ids_model, pid, sorter=np.argsort(ids_model))
+    col = np.argsort(ids_model)[col]
+    uv = np.zeros((frames.size, ids_model.size, 2))
+    detected = np.zeros((frames.size, ids_model.size), bool)
+    uv[row, col, 0], uv[row, col, 1] = tab["u"], tab["v"]
+    detected[row, col] = True
+    if frames.size == 0:
+        raise RecordingError(tab.path, None, "no detections of the object model's reference points")
+    return Detections(times=times, ids=ids_model, uv=uv, detected=detected, frames=frames)
+
+
+def write_detections(path: str | Path, det: Detections) -> None:
+    """Write ``detections.csv``: one row per detected point, frames in order (undetected
+    points and frames without detections write no rows)."""
+    f, m = np.nonzero(det.detected)
+    uv = det.uv[f, m]
+    if not np.all(np.isfinite(uv)):
+        raise ValueError("det.uv: detected points must have finite pixel coordinates")
+    write_table(
+        path, list(DETECTION_COLUMNS), [det.frames[f], det.times[f], det.ids[m], uv[:, 0], uv[:, 1]]
+    )
+
+
+# ------------------------------------------------------------------ image index
+
+
+def read_image_index(
+    path: str | Path, *, check_files: bool = True
+) -> tuple[np.ndarray, np.ndarray, list[Path]]:
+    """Read ``images.csv`` (``frame,t,file``; files relative to the file's folder).
+
+    Returns:
+        ``(frames (F,) int64, times (F,) [s], files)``: ``files`` are paths joined with
+        the folder of ``images.csv``. Frames and times strictly increase; with
+        ``check_files`` every listed image must exist.
+    """
+    tab = read_table(path, {"frame": "int", "t": "float", "file": "str"}, strictly_increasing="t")
+    frames = tab["frame"]
+    bad = np.flatnonzero(frames[1:] <= frames[:-1])
+    if bad.size:
+        r = int(bad[0]) + 1
+        raise tab.error(
+            r, f"column frame: frames must increase strictly ({frames[r]} after {frames[r - 1]})"
+        )
+    folder = tab.path.parent
+    files = [folder / f for f in tab["file"].tolist()]
+    if check_files:
+        for r, f in enumerate(files):
+            if not f.is_file():
+                raise tab.error(r, f"column file: image {f} does not exist")
+    return frames, tab["t"], files
+
+
+def write_image_index(
+    path: str | Path, frames: np.ndarray, times: np.ndarray, files: Sequence[str | Path]
+) -> None:
+    """Write ``images.csv``; files inside the folder of ``path`` are written relative to it."""
+    folder = Path(path).parent.resolve()
+    rel = []
+    for f in files:
+        f = Path(f)
+        if f.is_absolute():
+            try:
+                f = f.resolve().relative_to(folder)
+            except ValueError:
+                pass
+        rel.append(f.as_posix())
+    write_table(
+        path,
+        ["frame", "t", "file"],
+        [
+            np.asarray(frames, np.int64),
+            np.asarray(times, np.float64),
+            np.asarray(rel, dtype=object),
+        ],
+    )
+
+
+# ------------------------------------------------------------------------ points
+
+
+@dataclass(frozen=True)
+class ReconstructedPoints:
+    """Reconstructed reference points per frame.
+
+    Attributes:
+        frames: (F,) frame numbers; times: (F,) [s]; ids: (M,) point ids.
+        points: (F, M, 3) positions [m] (NaN where not available); ok: (F, M) bool.
+    """
+
+    frames: np.ndarray
+    times: np.ndarray
+    ids: np.ndarray
+    points: np.ndarray
+    ok: np.ndarray
+
+
+def write_points(
+    path: str | Path,
+    times: np.ndarray,
+    ids: np.ndarray,
+    points: np.ndarray,
+    ok: np.ndarray | None = None,
+    frames: np.ndarray | None = None,
+) -> None:
+    """Write ``points.csv`` ``frame,t,id,x,y,z,ok`` (one row per frame and point).
+
+    Args:
+        times: (F,) [s]; ids: (M,); points: (F, M, 3) [m]; ok: (F, M) bool (default all
+            True); frames: (F,) frame numbers (default 0..F-1).
+    """
+    times = np.asarray(times, np.float64)
+    ids = np.asarray(ids, np.int64)
+    F, M = times.shape[0], ids.shape[0]
+    points = np.asarray(points, np.float64)
+    if points.shape != (F, M, 3):
+        raise ValueError(f"points: expected shape ({F}, {M}, 3), got {points.shape}")
+    ok = np.ones((F, M), bool) if ok is None else np.asarray(ok, bool)
+    if ok.shape != (F, M):
+        raise ValueError(f"ok: expected shape ({F}, {M}), got {ok.shape}")
+    frames = np.arange(F) if frames is None else np.asarray(frames, np.int64)
+    if frames.shape != (F,):
+        raise ValueError(f"frames: expected shape ({F},), got {frames.shape}")
+    if np.any(ok & ~np.all(np.isfinite(points), -1)):
+        raise ValueError("points: points marked ok must be finite")
+    P = points.reshape(F * M, 3)
+    write_table(
+        path,
+        ["frame", "t", "id", "x", "y", "z", "ok"],
+        [
+            np.repeat(frames, M),
+            np.repeat(times, M),
+            np.tile(ids, F),
+            *P.T,
+            ok.reshape(-1).astype(np.int64),
+        ],
+    )
+
+
+def read_points(path: str | Path) -> ReconstructedPoints:
+    """Read ``points.csv`` (inverse of :func:`write_points`); pairs missing from the file
+    come back with ``ok = False`` and NaN points."""
+    cols = {
+        "frame": "int",
+        "t": "float",
+        "id": "int",
+        "x": "float",
+        "y": "float",
+        "z": "float",
+        "ok": "int",
+    }
+    tab = read_table(path, cols, allow_nonfinite=("x", "y", "z"))
+    frame, t, pid, ok = tab["frame"], tab["t"], tab["id"], tab["ok"]
+    bad = np.flatnonzero((ok != 0) & (ok != 1))
+    if bad.size:
+        raise tab.error(int(bad[0]), f"column ok: expected 0 or 1, got {ok[bad[0]]}")
+    P = np.stack([tab["x"], tab["y"], tab["z"]], 1)
+    bad = np.flatnonzero((ok == 1) & ~np.all(np.isfinite(P), 1))
+    if bad.size:
+        raise tab.error(int(bad[0]), "columns x, y, z: a point with ok = 1 must be finite")
+    start, frames = _frame_checks(tab, frame, t)
+    _duplicate_pairs(tab, frame, pid, "point")
+    _, first = np.unique(pid, return_index=True)
+    ids = pid[np.sort(first)]
+    row = np.searchsorted(frames, frame)
+    col = np.argsort(ids)[np.searchsorted(ids, pid, sorter=np.argsort(ids))]
+    points = np.full((frames.size, ids.size, 3), np.nan)
+    okm = np.zeros((frames.size, ids.size), bool)
+    points[row, col] = P
+    okm[row, col] = ok == 1
+    return ReconstructedPoints(frames=frames, times=t[start], ids=ids, points=points, ok=okm)
+
+
+# ---------------------------------------------------------------------- metadata
+
+
+@dataclass(frozen=True)
+class ImuNoise:
+    """IMU noise (continuous-time densities), defaults: an Xsens MTi-class MEMS IMU.
+
+    Attributes:
+        accel_noise_density: [m/s^2/sqrt(Hz)], default 60 ug/sqrt(Hz) = 5.884e-4.
+        gyro_noise_density: [rad/s/sqrt(Hz)], default 0.01 deg/s/sqrt(Hz) = 1.745e-4.
+        accel_random_walk: [m/s^3/sqrt(Hz)], default 4e-5.
+        gyro_random_walk: [rad/s^2/sqrt(Hz)], default 1e-6.
+    """
+
+    accel_noise_density: float = 60e-6 * 9.80665
+    gyro_noise_density: float = 0.01 * math.pi / 180.0
+    accel_random_walk: float = 4e-5
+    gyro_random_walk: float = 1e-6
+
+
+@dataclass(frozen=True)
+class RobotNoise:
+    """Noise of the robot controller's flange poses: position [m] (default 3e-5) and
+    orientation [rad] (default 1e-4), standard deviations."""
+
+    position: float = 3e-5
+    orientation: float = 1e-4
+
+
+@dataclass(frozen=True)
+class RecordingMeta:
+    """Sensor metadata of a recording (``recording.json``).
+
+    Attributes:
+        description: free text (default "").
+        imu_noise: :class:`ImuNoise` (default: Xsens MTi-class).
+        robot_noise: :class:`RobotNoise` (default 3e-5 m, 1e-4 rad).
+        robot_latency: robot pose stamp latency [s], or None (default) to estimate it.
+        gravity_w: (3,) gravity in the world frame [m/s^2] (default (0, 0, -9.81)).
+        calibration_target: description of the calibration target (a dict passed through
+            unchecked), or None.
+        T_i_c: (4, 4) the camera in the IMU frame (how the IMU is mounted beside the
+            camera), or None for identity. A ``T_i_c`` in ``camera.json`` takes precedence.
+    """
+
+    description: str = ""
+    imu_noise: ImuNoise = field(default_factory=ImuNoise)
+    robot_noise: RobotNoise = field(default_factory=RobotNoise)
+    robot_latency: float | None = None
+    gravity_w: tuple[float, float, float] = (0.0, 0.0, -9.81)
+    calibration_target: dict | None = None
+    T_i_c: np.ndarray | None = None
+
+
+META_KEYS = (
+    "format",
+    "version",
+    "description",
+    "imu_noise",
+    "robot_noise",
+    "robot_latency",
+    "gravity_w",
+    "calibration_target",
+    "T_i_c",
+)
+
+
+def _sub(path: Path, data: dict, key: str, cls) -> Any:
+    value = data.get(key)
+    if value is None:
+        return cls()
+    names = tuple(cls.__dataclass_fields__)
+    if not isinstance(value, dict):
+        raise RecordingError(
+            path, None, f'key "{key}": expected an object with keys {", ".join(names)}'
+        )
+    _check_keys(path, value, names, f' in "{key}"')
+    return cls(**{k: _number(path, f"{key}.{k}", v, nonneg=True) for k, v in value.items()})
+
+
+def read_meta(path: str | Path) -> RecordingMeta:
+    """Read ``recording.json``; unknown keys are an error (they list the known ones)."""
+    path, data = _read_json(path, "jaxtraj-recording")
+    _check_keys(path, data, META_KEYS)
+    desc = data.get("description", "")
+    if not isinstance(desc, str):
+        raise RecordingError(
+            path, None, f'key "description": expected a string, got {json.dumps(desc)}'
+        )
+    latency = data.get("robot_latency")
+    latency = None if latency is None else _number(path, "robot_latency", latency)
+    gravity = tuple(
+        _matrix(path, "gravity_w", data.get("gravity_w", [0.0, 0.0, -9.81]), (3,)).tolist()
+    )
+    target = data.get("calibration_target")
+    if target is not None and not isinstance(target, dict):
+        raise RecordingError(path, None, 'key "calibration_target": expected an object or null')
+    return RecordingMeta(
+        description=desc,
+        imu_noise=_sub(path, data, "imu_noise", ImuNoise),
+        robot_noise=_sub(path, data, "robot_noise", RobotNoise),
+        robot_latency=latency,
+        gravity_w=gravity,
+        calibration_target=target,
+        T_i_c=_rigid_or_none(path, "T_i_c", data.get("T_i_c")),
+    )
+
+
+def write_meta(path: str | Path, meta: RecordingMeta) -> None:
+    """Write ``recording.json``."""
+    write_json(
+        path,
+        {
+            "format": "jaxtraj-recording",
+            "version": 1,
+            "description": meta.description,
+            "imu_noise": meta.imu_noise,
+            "robot_noise": meta.robot_noise,
+            "robot_latency": meta.robot_latency,
+            "gravity_w": list(meta.gravity_w),
+            "calibration_target": meta.calibration_target,
+            "T_i_c": None if meta.T_i_c is None else np.asarray(meta.T_i_c).tolist(),
+        },
+    )
