@@ -1,6 +1,14 @@
-"""Vision at the host-side edge (OpenCV): hand-eye calibration; later calibration and markers."""
+"""Vision at the host-side edge (OpenCV): camera and hand-eye calibration, marker detection."""
 
+from .calibration import CalibrationResult as CalibrationResult
+from .calibration import CalibrationTarget as CalibrationTarget
+from .calibration import calibrate_camera as calibrate_camera
+from .calibration import check_image_size as check_image_size
+from .calibration import find_charuco as find_charuco
+from .calibration import find_chessboard as find_chessboard
 from .handeye import HandEyeResult as HandEyeResult
 from .handeye import calibrate_hand_eye as calibrate_hand_eye
 from .handeye import hand_eye_residuals as hand_eye_residuals
 from .handeye import target_poses_from_views as target_poses_from_views
+from .markers import MarkerDetections as MarkerDetections
+from .markers import detect_markers as detect_markers
