@@ -1,11 +1,17 @@
 """The ``jaxtraj`` command.
 
-Sub-commands:
-    demo    simulate the paper's experiment (section 5) in a robot cell, reconstruct the
-            workpiece trajectory, print the errors and save the Fig. 3/4 plots.
+Sub-commands (``jaxtraj COMMAND --help`` explains each option):
+    simulate     write the recording folder of a simulated robot cell, images rendered
+    calibrate    camera intrinsics and hand-eye transform from calibration/ images
+    fuse         camera poses at the image times from the IMU and robot logs
+    reconstruct  detect the markers, measure the trajectories and the 6-DoF pose
+    evaluate     compare the results with the simulation's ground truth
+    demo         all of the above on a simulated cell (``--paper``: the paper's
+                 section-5 experiment on ideal detections instead)
 
-Exit codes: 0 success, 1 the run finished but its result failed a check (e.g. a
-degenerate reconstruction), 2 bad usage or input.
+Exit codes: 0 success; 1 the run finished but its result failed a check (a degenerate
+reconstruction, accuracy targets missed); 2 bad usage or input (one line on stderr
+naming the file, line and problem); 130 interrupted.
 """
 
 from __future__ import annotations
@@ -15,6 +21,9 @@ import sys
 from pathlib import Path
 
 EXIT_OK, EXIT_FAILED, EXIT_USAGE = 0, 1, 2
+
+#: Accuracy the simulated cell must reach (issue "pipeline"): assembly point, orientation.
+TARGET_POSITION_MM, TARGET_ORIENTATION_DEG = 1.0, 0.1
 
 
 class UsageError(Exception):
@@ -35,80 +44,207 @@ def _nonneg_float(text: str) -> float:
     return value
 
 
+def _positive_float(text: str) -> float:
+    value = float(text)
+    if not value > 0:
+        raise argparse.ArgumentTypeError(f"expected a positive number, got {text}")
+    return value
+
+
+def _add_results(p: argparse.ArgumentParser) -> None:
+    p.add_argument("recording", type=Path, help="the recording folder")
+    p.add_argument(
+        "--out", type=Path, default=None, help="results folder (default: RECORDING/results)"
+    )
+
+
+def _add_reconstruct_options(p: argparse.ArgumentParser) -> None:
+    p.add_argument(
+        "--pose-method",
+        choices=("pnp", "joint"),
+        default="pnp",
+        help="6-DoF pose: 'pnp' per image (PnP + Levenberg-Marquardt with the fused camera "
+        "pose; default) or 'joint' (one smooth rigid motion in a DCT basis of --k vectors, "
+        "fitted to all pixels, started from the per-image poses)",
+    )
+    p.add_argument(
+        "--track-method",
+        choices=("smoother", "dct", "none"),
+        default="smoother",
+        help="per-point trajectories without the object model (the paper's method): "
+        "'smoother' (smoothness prior, no k; default), 'dct' (plain DCT with --k vectors) "
+        "or 'none'",
+    )
+    p.add_argument("--k", type=_positive_int, default=20, help="DCT vectors (default 20)")
+
+
+def _add_simulate_options(p: argparse.ArgumentParser, frames_default: int = 150) -> None:
+    p.add_argument(
+        "--frames",
+        type=_positive_int,
+        default=frames_default,
+        help=f"number of images (default {frames_default}, as in the paper)",
+    )
+    p.add_argument(
+        "--duration", type=_positive_float, default=10.0, help="recording length [s] (default 10)"
+    )
+    p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="jaxtraj",
         description="Trajectory and 6-DoF pose of a moving workpiece from a robot-carried "
-        "monocular camera.",
+        "monocular camera, its IMU and the robot controller's poses.",
+        epilog="Exit codes: 0 ok, 1 result failed a check, 2 bad usage or input.",
     )
+    parser.add_argument("--quiet", action="store_true", help="no progress bars")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
+
+    sim = sub.add_parser(
+        "simulate",
+        help="write a simulated robot cell's recording folder (rendered images)",
+        description="Simulate a robot cell: a workpiece with six ArUco markers on a smooth "
+        "6-DoF path, a camera with an IMU on a second robot sweeping over it, images "
+        "rendered with lens distortion, blur and noise at irregular times, IMU and robot "
+        "controller logs, chessboard calibration images. Writes the recording folder "
+        "(format: jaxtraj.io.recording) with the ground truth in truth/.",
+    )
+    sim.add_argument("out", type=Path, help="the recording folder to write (replaced if present)")
+    _add_simulate_options(sim)
+    sim.add_argument(
+        "--latency-known",
+        action="store_true",
+        help="write the robot latency into recording.json (default: leave it to be estimated)",
+    )
+
+    cal = sub.add_parser(
+        "calibrate",
+        help="intrinsics (+ hand-eye) from calibration/ images; writes camera.json",
+        description='Find the calibration target of recording.json\'s "calibration_target" '
+        "in RECORDING/calibration/*.png, calibrate K and the distortion (OpenCV), and, when "
+        "calibration/robot.csv gives the flange pose of each image, the hand-eye transform. "
+        "Writes RECORDING/camera.json.",
+    )
+    cal.add_argument("recording", type=Path, help="the recording folder")
+
+    fuse = sub.add_parser(
+        "fuse",
+        help="camera poses at the image times from IMU + robot logs",
+        description="Error-state Kalman filter and RTS smoother over imu.csv and robot.csv "
+        "(hand-eye from camera.json); writes camera_poses.csv/.tum and fusion.json.",
+    )
+    _add_results(fuse)
+    fuse.add_argument(
+        "--latency",
+        type=float,
+        default=None,
+        help="robot pose latency [s] (default: recording.json's, else estimated)",
+    )
+    fuse.add_argument(
+        "--no-smoother", action="store_true", help="filter only (causal), no RTS smoother"
+    )
+
+    rec = sub.add_parser(
+        "reconstruct",
+        help="detect markers, measure trajectories and 6-DoF pose",
+        description="Detect the object model's markers in the images (or read "
+        "detections.csv), then measure the workpiece pose per image and the per-point "
+        "trajectories; needs camera.json and the results of `jaxtraj fuse`. Writes "
+        "pose.csv/.tum, assembly.csv, points.csv, tracks.csv, detections.csv, report.json.",
+    )
+    _add_results(rec)
+    _add_reconstruct_options(rec)
+
+    ev = sub.add_parser(
+        "evaluate",
+        help="errors against the ground truth of a simulated recording",
+        description="Compare the results with RECORDING/truth/: assembly-point position, "
+        "orientation, per-point trajectories, camera poses, calibration. Writes "
+        "evaluation.json and trajectory.png/errors.png (the paper's Fig. 3/4).",
+    )
+    _add_results(ev)
+    ev.add_argument("--no-plots", action="store_true", help="skip the PNG figures")
+    ev.add_argument(
+        "--max-position-mm",
+        type=_positive_float,
+        default=None,
+        help="exit 1 if the mean assembly-point error exceeds this [mm]",
+    )
+    ev.add_argument(
+        "--max-orientation-deg",
+        type=_positive_float,
+        default=None,
+        help="exit 1 if the mean orientation error exceeds this [deg]",
+    )
+
     demo = sub.add_parser(
         "demo",
-        help="simulate the paper's experiment, reconstruct, print errors, save plots",
-        description="Simulate the paper's experiment (section 5): a workpiece point moved along "
-        "an arbitrary smooth 3D curve, images at irregular times from a camera on a second "
-        "robot that moves randomly and discontinuously (0.5-1.5 m stand-off, 640x480), "
-        "pixel noise; reconstruct the trajectory with the DCT basis and report the "
-        "mean/max Euclidean error. Writes fig3_trajectory.png, fig4_errors.png and "
-        "summary.json to --out.",
+        help="simulate -> calibrate -> fuse -> reconstruct -> evaluate on a simulated cell",
+        description="The whole pipeline on a simulated robot cell with rendered images: "
+        "writes OUT/recording (with OUT/recording/results) and prints the errors. Exits 1 "
+        f"if the mean assembly-point error exceeds {TARGET_POSITION_MM} mm or the mean "
+        f"orientation error {TARGET_ORIENTATION_DEG} deg. With --paper: the paper's "
+        "section-5 experiment on ideal detections (one point, random discontinuous camera; "
+        "Fig. 3/4 and summary.json in OUT).",
     )
     demo.add_argument(
-        "--out",
-        type=Path,
-        default=Path("jaxtraj-demo"),
-        help="output folder (default: ./jaxtraj-demo)",
+        "--out", type=Path, default=Path("jaxtraj-demo"), help="output folder (./jaxtraj-demo)"
     )
     demo.add_argument(
-        "--frames",
-        type=_positive_int,
-        default=150,
-        help="number of images (default 150, as in the paper)",
+        "--frames", type=_positive_int, default=150, help="number of images (default 150)"
     )
+    demo.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
+    demo.add_argument("--no-plots", action="store_true", help="skip the PNG figures")
     demo.add_argument(
-        "--k",
-        type=_positive_int,
-        default=None,
-        help="number of DCT basis vectors for --method dct (default 20)",
+        "--paper",
+        action="store_true",
+        help="the paper's experiment on ideal detections instead of the rendered cell",
     )
     demo.add_argument(
         "--method",
         choices=("dct", "regularised", "smoother"),
         default="dct",
-        help="estimator: 'dct' is the paper's plain DCT with a fixed k; 'regularised' a DCT "
-        "with a cross-validated roughness penalty (no k to choose); 'smoother' a smoothness "
-        "prior without any basis (default: dct)",
+        help="--paper only: 'dct' (the paper's plain DCT, fixed k), 'regularised' (DCT with "
+        "a cross-validated roughness penalty) or 'smoother' (smoothness prior, no basis)",
     )
+    demo.add_argument("--k", type=_positive_int, default=None, help="--paper --method dct: k")
     demo.add_argument(
-        "--noise",
-        type=_nonneg_float,
-        default=0.3,
-        help="pixel detection noise, standard deviation in px (default 0.3)",
+        "--noise", type=_nonneg_float, default=0.3, help="--paper: pixel noise [px] (0.3)"
     )
-    demo.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
-    demo.add_argument(
-        "--float32", action="store_true", help="compute in float32 instead of float64"
-    )
-    demo.add_argument("--no-plots", action="store_true", help="skip the PNG figures")
+    demo.add_argument("--float32", action="store_true", help="--paper: compute in float32")
     return parser
+
+
+def _progress(quiet: bool):
+    """A ``progress(iterable, description, total)`` wrapper: tqdm bars on a terminal."""
+    if quiet or not sys.stderr.isatty():
+        return None
+    from tqdm import tqdm
+
+    return lambda items, desc, total: tqdm(items, desc=desc, total=total, leave=False)
 
 
 def main(argv: list[str] | None = None) -> int:
     """Entry point of the ``jaxtraj`` console script; returns the exit code."""
     parser = build_parser()
     args = parser.parse_args(argv)
+    from .io.tables import RecordingError
+
     try:
-        if args.command == "demo":
+        if args.command == "demo" and args.paper:
             from .demo import run_demo
 
             return run_demo(args)
-    except UsageError as err:
+        from .commands import run_command
+
+        return run_command(args, _progress(args.quiet))
+    except (UsageError, RecordingError, ValueError, FileNotFoundError, NotADirectoryError) as err:
         print(f"jaxtraj {args.command}: error: {err}", file=sys.stderr)
         return EXIT_USAGE
     except KeyboardInterrupt:
         print("jaxtraj: interrupted", file=sys.stderr)
         return 130
-    parser.error(f"unknown command {args.command}")  # pragma: no cover
-    return EXIT_USAGE
 
 
 if __name__ == "__main__":  # pragma: no cover

@@ -9,7 +9,7 @@ from jaxtraj.cli import EXIT_OK, EXIT_USAGE, main
 
 def test_demo_small_writes_results_and_meets_accuracy(tmp_path, capsys):
     out = tmp_path / "demo"
-    rc = main(["demo", "--frames", "60", "--k", "12", "--out", str(out), "--seed", "1"])
+    rc = main(["demo", "--paper", "--frames", "60", "--k", "12", "--out", str(out), "--seed", "1"])
     assert rc == EXIT_OK
     text = capsys.readouterr().out
     assert "mean error" in text and "6-DoF pose" in text
@@ -25,7 +25,7 @@ def test_demo_small_writes_results_and_meets_accuracy(tmp_path, capsys):
 
 
 def test_demo_rejects_k_too_large(tmp_path, capsys):
-    rc = main(["demo", "--frames", "10", "--k", "8", "--out", str(tmp_path)])
+    rc = main(["demo", "--paper", "--frames", "10", "--k", "8", "--out", str(tmp_path)])
     assert rc == EXIT_USAGE
     assert "--k 8 is too large for --frames 10" in capsys.readouterr().err
 
@@ -56,7 +56,7 @@ def test_console_script_help():
 @pytest.mark.parametrize("method", ["regularised", "smoother"])
 def test_demo_better_estimators_beat_the_paper_method(tmp_path, method):
     dct, other = tmp_path / "dct", tmp_path / method
-    base = ["demo", "--frames", "60", "--seed", "2", "--no-plots"]
+    base = ["demo", "--paper", "--frames", "60", "--seed", "2", "--no-plots"]
     assert main([*base, "--k", "12", "--out", str(dct)]) == EXIT_OK
     assert main([*base, "--method", method, "--out", str(other)]) == EXIT_OK
     a = json.loads((dct / "summary.json").read_text())["point"]

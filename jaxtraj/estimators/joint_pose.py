@@ -90,6 +90,7 @@ def fit_rigid_trajectory(
     loss: str = "l2",
     loss_scale: float = 2.0,
     max_steps: int = 100,
+    init: tuple[Float[ArrayLike, "F 3 3"], Float[ArrayLike, "F 3"]] | None = None,
 ) -> RigidTrajectory:
     """Fit one rigid motion (translation and rotation in a basis) to all points' pixels.
 
@@ -103,19 +104,29 @@ def fit_rigid_trajectory(
         loss, loss_scale: robust loss on the reprojection error (see
             :func:`jaxtraj.estimators.refine_dct`).
         max_steps: Levenberg-Marquardt steps.
+        init: per-frame starting poses ``(R_w_o (F, 3, 3), t_w_o (F, 3))``, e.g. from a
+            per-image PnP; default :func:`kabsch_per_frame` (per-point reconstruction,
+            which needs a camera path that makes each point reconstructible).
 
     Returns:
         A :class:`RigidTrajectory` with the pose ``T_w_o`` at every frame.
     """
     _check(P, uv, model_points, basis, weights)
     check_loss(loss, loss_scale)
+    if init is not None:
+        F = np.shape(P)[0]
+        check_shape("init[0]", init[0], (F, 3, 3), "(F, 3, 3) starting rotations R_w_o")
+        check_shape("init[1]", init[1], (F, 3), "(F, 3) starting translations t_w_o")
     P, uv, model_points, basis, weights = as_float(P, uv, model_points, basis, weights)
     w = jnp.ones(uv.shape[:2], P.dtype) if weights is None else weights
     obs = w > 0
     uv = jnp.where(obs[..., None], uv, 0.0)
     F = basis.shape[0]
 
-    R0, t0 = kabsch_per_frame(P, uv, model_points, basis, w)
+    if init is None:
+        R0, t0 = kabsch_per_frame(P, uv, model_points, basis, w)
+    else:
+        R0, t0 = (jnp.asarray(a, P.dtype) for a in init)
     R_ref = R0[F // 2]
     rotvec = jax.vmap(lambda R: jaxlie.SO3.from_matrix(R @ R_ref.T).log())(R0)
     pinv = jnp.linalg.pinv(basis)

@@ -6,6 +6,14 @@ from .camera_paths import orbit_camera as orbit_camera
 from .camera_paths import random_discontinuous_camera as random_discontinuous_camera
 from .camera_paths import smooth_random_camera as smooth_random_camera
 from .camera_paths import static_camera as static_camera
+from .cell import CellConfig as CellConfig
+from .cell import SimulatedCell as SimulatedCell
+from .cell import simulate_cell as simulate_cell
+from .recording import write_simulated_recording as write_simulated_recording
+from .render import PlanarTexture as PlanarTexture
+from .render import chessboard_texture as chessboard_texture
+from .render import marker_board as marker_board
+from .render import render as render
 from .scene import CAMERA_KINDS as CAMERA_KINDS
 from .scene import DEFAULT_MARKERS as DEFAULT_MARKERS
 from .scene import IMAGE_SIZE as IMAGE_SIZE

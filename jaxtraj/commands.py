@@ -1,0 +1,192 @@
+"""What the ``jaxtraj`` sub-commands print and return (the CLI's body; see :mod:`.cli`)."""
+
+from __future__ import annotations
+
+import time
+from argparse import Namespace
+from pathlib import Path
+
+import jax
+
+from .cli import EXIT_FAILED, EXIT_OK, TARGET_ORIENTATION_DEG, TARGET_POSITION_MM
+from .pipeline import steps
+from .sim.cell import CellConfig
+
+_TRUE_LATENCY_MS = CellConfig().robot_latency * 1e3
+
+
+def _fmt(stats: dict, unit: str, digits: int = 2) -> str:
+    if stats.get(f"mean_{unit}") is None:
+        return "n/a"
+    mean, top = stats[f"mean_{unit}"], stats[f"max_{unit}"]
+    return f"mean {mean:.{digits}f} {unit}, max {top:.{digits}f} {unit}"
+
+
+def _simulate(args: Namespace, progress) -> int:
+    folder = steps.step_simulate(
+        args.out,
+        seed=args.seed,
+        frames=args.frames,
+        duration=args.duration,
+        latency_known=args.latency_known,
+        progress=progress,
+    )
+    print(
+        f"jaxtraj simulate: wrote the recording {folder} ({args.frames} images, seed {args.seed})"
+    )
+    return EXIT_OK
+
+
+def _calibrate(args: Namespace, progress) -> int:
+    report = steps.step_calibrate(args.recording)
+    K = report.camera.K
+    print(
+        f"jaxtraj calibrate: {len(report.views_used)} views used, reprojection RMS "
+        f"{report.rms_px:.3f} px; fx {K[0, 0]:.2f}, fy {K[1, 1]:.2f}, cx {K[0, 2]:.2f}, "
+        f"cy {K[1, 2]:.2f} px"
+    )
+    for name, why in report.views_skipped:
+        print(f"  skipped {name}: {why}")
+    if report.hand_eye is not None:
+        he = report.hand_eye
+        print(
+            f"  hand-eye: residual {he['rotation_residual_deg']:.3f} deg, "
+            f"{he['translation_residual_mm']:.2f} mm ({'OK' if he['ok'] else 'NOT OK'})"
+        )
+    print(f"  wrote {Path(args.recording) / 'camera.json'}")
+    return EXIT_OK if report.hand_eye is None or report.hand_eye["ok"] else EXIT_FAILED
+
+
+def _fuse(args: Namespace, progress) -> int:
+    s = steps.step_fuse(args.recording, args.out, latency=args.latency, smooth=not args.no_smoother)
+    lat = "estimated" if s["latency_estimated"] else "given"
+    print(
+        f"jaxtraj fuse: {s['imu_samples']} IMU samples, {s['robot_poses']} robot poses -> "
+        f"{s['images']} camera poses; latency {s['robot_latency_s'] * 1e3:.2f} ms ({lat}); "
+        f"NIS {s['nis_mean']:.2f} (expected 6); camera sigma "
+        f"{s['camera_position_sigma_mm']['mean']:.3f} mm, "
+        f"{s['camera_orientation_sigma_deg']['mean']:.4f} deg"
+    )
+    return EXIT_OK
+
+
+def _reconstruct(args: Namespace, progress) -> int:
+    s = steps.step_reconstruct(
+        args.recording,
+        args.out,
+        pose_method=args.pose_method,
+        track_method=args.track_method,
+        k=args.k,
+        progress=progress,
+    )
+    print(
+        f"jaxtraj reconstruct: {s['frames_with_pose']}/{s['frames']} images with a pose "
+        f"({s['pose_method']}), {s['detections_per_frame']['mean']:.1f} reference points per "
+        f"image, pose reprojection RMS {s['pose_reprojection_rms_px']['mean']:.3f} px"
+    )
+    for item in s["skipped_frames"]:
+        print(f"  frame {item['frame']} skipped: {item['reason']}")
+    for item in s["notes"]:
+        print(f"  frame {item['frame']}: {item['note']}")
+    if s["tracks"] is not None:
+        bad = [i for i, t in s["tracks"].items() if not t["ok"]]
+        print(
+            f"  per-point trajectories ({s['track_method']}): "
+            + ("all OK" if not bad else f"NOT OK for ids {', '.join(bad)}")
+        )
+    return EXIT_OK if s["frames_with_pose"] > 0 else EXIT_FAILED
+
+
+def _print_evaluation(s: dict, indent: str = "  ") -> None:
+    print(f"{indent}assembly point: {_fmt(s['assembly_point_position'], 'mm')}")
+    print(f"{indent}orientation:    {_fmt(s['orientation'], 'deg', 3)}")
+    if "per_point_trajectories" in s:
+        print(
+            f"{indent}per-point trajectories (no model): {_fmt(s['per_point_trajectories'], 'mm')}"
+        )
+    if "camera_pose" in s:
+        cp = s["camera_pose"]
+        print(
+            f"{indent}fused camera pose vs truth: {_fmt(cp['position'], 'mm')}; "
+            f"{_fmt(cp['orientation'], 'deg', 3)}"
+        )
+    if "calibration" in s:
+        c = s["calibration"]
+        he = ""
+        if "hand_eye_position_error_mm" in c:
+            he = (
+                f"; hand-eye {c['hand_eye_position_error_mm']:.2f} mm, "
+                f"{c['hand_eye_rotation_error_deg']:.3f} deg"
+            )
+        print(
+            f"{indent}calibration vs truth: focal {c['focal_error_px']:.2f} px, principal "
+            f"point {c['principal_point_error_px']:.2f} px{he}"
+        )
+
+
+def _passes(s: dict, max_mm: float | None, max_deg: float | None) -> bool:
+    pos, ang = s["assembly_point_position"]["mean_mm"], s["orientation"]["mean_deg"]
+    if pos is None or ang is None:
+        return False
+    return (max_mm is None or pos <= max_mm) and (max_deg is None or ang <= max_deg)
+
+
+def _evaluate(args: Namespace, progress) -> int:
+    s = steps.step_evaluate(args.recording, args.out, plots=not args.no_plots)
+    print(f"jaxtraj evaluate: {s['frames_with_pose']}/{s['frames']} images with a pose")
+    _print_evaluation(s)
+    return EXIT_OK if _passes(s, args.max_position_mm, args.max_orientation_deg) else EXIT_FAILED
+
+
+def _demo(args: Namespace, progress) -> int:
+    out = Path(args.out)
+    recording = out / "recording"
+    t0 = time.perf_counter()
+    print(f"jaxtraj demo: simulated robot cell, {args.frames} rendered images, seed {args.seed}")
+    steps.step_simulate(recording, seed=args.seed, frames=args.frames, progress=progress)
+    print(f"  1 simulate    wrote {recording} ({time.perf_counter() - t0:.0f} s)")
+    cal = steps.step_calibrate(recording)
+    he = cal.hand_eye or {}
+    print(
+        f"  2 calibrate   {len(cal.views_used)} chessboard views, RMS {cal.rms_px:.3f} px, "
+        f"hand-eye {'OK' if he.get('ok') else 'NOT OK'}"
+    )
+    fu = steps.step_fuse(recording)
+    print(
+        f"  3 fuse        ESKF + RTS smoother, latency {fu['robot_latency_s'] * 1e3:.2f} ms "
+        f"(estimated; true {_TRUE_LATENCY_MS:.2f} ms), NIS {fu['nis_mean']:.2f}"
+    )
+    rc = steps.step_reconstruct(recording, progress=progress)
+    print(
+        f"  4 reconstruct {rc['frames_with_pose']}/{rc['frames']} images with a pose, "
+        f"{rc['detections_per_frame']['mean']:.1f} markers per image, "
+        f"{len(rc['skipped_frames'])} skipped"
+    )
+    ev = steps.step_evaluate(recording, plots=not args.no_plots)
+    print(f"  5 evaluate    ({time.perf_counter() - t0:.0f} s in all)")
+    _print_evaluation(ev, indent="      ")
+    print(
+        f"  targets: assembly point <= {TARGET_POSITION_MM} mm, orientation <= "
+        f"{TARGET_ORIENTATION_DEG} deg (mean); paper (real cell): < 6 mm mean"
+    )
+    print(f"  results in {recording / 'results'}")
+    if not _passes(ev, TARGET_POSITION_MM, TARGET_ORIENTATION_DEG):
+        print("  WARNING: the accuracy targets were missed")
+        return EXIT_FAILED
+    return EXIT_OK
+
+
+_COMMANDS = {
+    "simulate": _simulate,
+    "calibrate": _calibrate,
+    "fuse": _fuse,
+    "reconstruct": _reconstruct,
+    "evaluate": _evaluate,
+    "demo": _demo,
+}
+
+
+def run_command(args: Namespace, progress=None) -> int:
+    """Run one parsed sub-command (not ``demo --paper``); returns the exit code."""
+    jax.config.update("jax_enable_x64", True)  # host-side program, not library code
+    return _COMMANDS[args.command](args, progress)

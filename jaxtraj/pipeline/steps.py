@@ -1,0 +1,297 @@
+"""The pipeline's steps on folders: what each ``jaxtraj`` sub-command does.
+
+Each step reads a recording folder (:mod:`jaxtraj.io.recording`), runs one stage, and
+writes its outputs into a results folder (default ``RECORDING/results``). Every file is
+written atomically; each step deletes its summary file (``fusion.json``,
+``report.json``, ``evaluation.json``) first and writes it last, so a summary file is
+present only when all of the step's outputs are complete.
+
+Results folder::
+
+    results/
+      camera_poses.csv, camera_poses.tum   fused camera poses T_w_c at the image times
+      fusion.json                          latency, filter consistency, pose sigmas
+      detections.csv                       reference points found in the images
+      pose.csv, pose.tum                   workpiece pose T_w_o per image
+      assembly.csv                         the assembly point per image (t, x, y, z, ok)
+      points.csv                           reference points from the pose
+      tracks.csv                           per-point trajectories (the paper's method)
+      report.json                          what reconstruct did, skipped frames, methods
+      evaluation.json, *.png               errors against truth/ (simulations)
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Iterable
+from dataclasses import asdict
+from pathlib import Path
+
+import numpy as np
+
+from ..io.formats import (
+    read_poses,
+    write_camera,
+    write_detections,
+    write_json,
+    write_points,
+    write_poses,
+    write_tum,
+)
+from ..io.recording import Recording, read_recording, read_truth
+from ..io.tables import write_table
+
+__all__ = [
+    "default_results",
+    "step_calibrate",
+    "step_evaluate",
+    "step_fuse",
+    "step_reconstruct",
+    "step_simulate",
+]
+
+Progress = Callable[[Iterable, str, int], Iterable]
+
+
+def default_results(recording: Path) -> Path:
+    """The default results folder of a recording."""
+    return Path(recording) / "results"
+
+
+def _start(out: Path, summary: str) -> Path:
+    out.mkdir(parents=True, exist_ok=True)
+    (out / summary).unlink(missing_ok=True)
+    return out / summary
+
+
+def step_simulate(
+    out: Path,
+    *,
+    seed: int = 0,
+    frames: int = 150,
+    duration: float = 10.0,
+    latency_known: bool = False,
+    progress: Progress | None = None,
+) -> Path:
+    """Simulate a robot cell and write its recording folder with rendered images."""
+    from ..sim.cell import CellConfig, simulate_cell
+    from ..sim.recording import write_simulated_recording
+
+    cell = simulate_cell(CellConfig(n_images=frames, duration=duration), seed=seed)
+    return write_simulated_recording(
+        cell, out, seed=seed, robot_latency_known=latency_known, progress=progress
+    )
+
+
+def step_calibrate(recording: Path):
+    """Calibrate the camera from ``calibration/`` and write ``camera.json``."""
+    from .calibrate import calibrate_recording
+
+    rec = read_recording(recording)
+    report = calibrate_recording(rec)
+    write_camera(Path(recording) / "camera.json", report.camera)
+    return report
+
+
+def _camera(rec: Recording):
+    if rec.camera is None:
+        raise ValueError(
+            f"{rec.root}: no camera.json (or camera.yaml); run `jaxtraj calibrate "
+            f"{rec.root}` or provide the calibration"
+        )
+    return rec.camera
+
+
+def _image_times(rec: Recording) -> tuple[np.ndarray, np.ndarray]:
+    if rec.image_index is not None:
+        return rec.image_index[0], rec.image_index[1]
+    return rec.detections.frames, rec.detections.times
+
+
+def step_fuse(
+    recording: Path, out: Path | None = None, *, latency: float | None = None, smooth: bool = True
+) -> dict:
+    """Fuse IMU and robot poses; write the camera poses at the image times."""
+    from ..fusion.events import RobotNoise
+    from ..fusion.imu import ImuNoise
+    from .fuse import fuse_camera_path
+
+    rec = read_recording(recording)
+    out = default_results(recording) if out is None else Path(out)
+    camera = _camera(rec)
+    if camera.T_f_c is None:
+        raise ValueError(
+            f"{rec.root}: the camera calibration has no hand-eye transform T_f_c; run "
+            "`jaxtraj calibrate` with calibration/robot.csv, or add T_f_c to camera.json"
+        )
+    summary_path = _start(out, "fusion.json")
+    T_i_c = camera.T_i_c if camera.T_i_c is not None else rec.meta.T_i_c
+    _, times = _image_times(rec)
+    latency = rec.meta.robot_latency if latency is None else latency
+    m = rec.meta
+    fused = fuse_camera_path(
+        rec.imu.t,
+        rec.imu.gyro,
+        rec.imu.accel,
+        rec.robot,
+        times,
+        T_f_c=camera.T_f_c,
+        T_i_c=T_i_c,
+        imu_noise=ImuNoise(**asdict(m.imu_noise)),
+        robot_noise=RobotNoise(m.robot_noise.position, m.robot_noise.orientation),
+        latency=latency,
+        gravity_w=m.gravity_w,
+        smooth=smooth,
+    )
+    write_poses(out / "camera_poses.csv", fused.pose)
+    write_tum(out / "camera_poses.tum", fused.pose)
+    summary = {
+        "images": len(times),
+        "imu_samples": fused.num_imu,
+        "robot_poses": fused.num_robot,
+        "robot_latency_s": fused.latency,
+        "latency_estimated": fused.latency_estimated,
+        "smoothed": smooth,
+        "nis_mean": fused.nis_mean,
+        "nis_expected": 6.0,
+        "camera_position_sigma_mm": {
+            "mean": float(fused.position_sigma.mean() * 1e3),
+            "max": float(fused.position_sigma.max() * 1e3),
+        },
+        "camera_orientation_sigma_deg": {
+            "mean": float(np.degrees(fused.orientation_sigma.mean())),
+            "max": float(np.degrees(fused.orientation_sigma.max())),
+        },
+    }
+    write_json(summary_path, summary)
+    return summary
+
+
+def step_reconstruct(
+    recording: Path,
+    out: Path | None = None,
+    *,
+    pose_method: str = "pnp",
+    track_method: str = "smoother",
+    k: int = 20,
+    progress: Progress | None = None,
+) -> dict:
+    """Detect (if images), then measure trajectories and the 6-DoF pose; write results."""
+    from .detect import detect_images
+    from .reconstruct import reconstruct_recording
+
+    rec = read_recording(recording)
+    out = default_results(recording) if out is None else Path(out)
+    camera = _camera(rec)
+    if not (out / "camera_poses.csv").exists() or not (out / "fusion.json").exists():
+        raise ValueError(
+            f"{out}: no complete camera poses (camera_poses.csv, fusion.json); run "
+            f"`jaxtraj fuse {rec.root}` first"
+        )
+    summary_path = _start(out, "report.json")
+    cameras = read_poses(out / "camera_poses.csv")
+    notes = []
+    if rec.image_index is not None:
+        frames, times, files = rec.image_index
+        det, notes = detect_images(frames, times, files, rec.object, camera, progress=progress)
+        write_detections(out / "detections.csv", det)
+    else:
+        det = rec.detections
+    meas = reconstruct_recording(
+        det, camera, cameras, rec.object, pose_method=pose_method, track_method=track_method, k=k
+    )
+    write_poses(out / "pose.csv", meas.pose)
+    write_tum(out / "pose.tum", meas.pose)
+    write_table(
+        out / "assembly.csv",
+        ["frame", "t", "x", "y", "z", "ok"],
+        [meas.frames, meas.times, *meas.assembly.T, meas.pose_ok.astype(np.int64)],
+    )
+    ok_points = np.repeat(meas.pose_ok[:, None], len(meas.ids), axis=1)
+    write_points(out / "points.csv", meas.times, meas.ids, meas.points, ok_points, meas.frames)
+    if track_method != "none":
+        track_ok = np.isfinite(meas.track_points).all(-1) & meas.track_ok[None, :]
+        write_points(
+            out / "tracks.csv",
+            meas.times,
+            meas.ids,
+            np.nan_to_num(meas.track_points),
+            track_ok,
+            meas.frames,
+        )
+    detected = det.detected.sum(axis=1)
+    summary = {
+        "frames": len(meas.times),
+        "frames_with_pose": int(meas.pose_ok.sum()),
+        "pose_method": pose_method,
+        "track_method": track_method,
+        "k": k if "dct" in (track_method,) or pose_method == "joint" else None,
+        "detections_per_frame": {"mean": float(detected.mean()), "min": int(detected.min())},
+        "pose_reprojection_rms_px": {
+            "mean": float(np.nanmean(meas.pose_rms_px)),
+            "max": float(np.nanmax(meas.pose_rms_px)),
+        },
+        "tracks": {
+            str(int(i)): {"ok": bool(o), "reprojection_rms_px": float(r)}
+            for i, o, r in zip(meas.ids, meas.track_ok, meas.track_rms_px, strict=False)
+        }
+        if track_method != "none"
+        else None,
+        "skipped_frames": [{"frame": f, "reason": why} for f, why in meas.skipped],
+        "notes": [{"frame": f, "note": n} for f, n in notes],
+    }
+    write_json(summary_path, summary)
+    return summary
+
+
+def step_evaluate(recording: Path, out: Path | None = None, *, plots: bool = True) -> dict:
+    """Compare the results with ``truth/``; write evaluation.json and plots."""
+    from ..io.tables import read_table
+    from .evaluate import evaluate_results
+
+    recording = Path(recording)
+    out = default_results(recording) if out is None else Path(out)
+    truth = read_truth(recording)
+    if truth is None:
+        raise ValueError(f"{recording}: no truth/ folder; evaluate needs a simulated recording")
+    if not (out / "report.json").exists():
+        raise ValueError(f"{out}: no complete results (report.json); run `jaxtraj reconstruct`")
+    summary_path = _start(out, "evaluation.json")
+    rec = read_recording(recording)
+    pose = read_poses(out / "pose.csv")
+    ok = read_table(out / "assembly.csv", {"frame": "int", "t": "float", "ok": "int"})["ok"] > 0
+    tracks = None
+    if (out / "tracks.csv").exists():
+        from ..io.formats import read_points
+
+        tr = read_points(out / "tracks.csv")
+        tracks = np.where(tr.ok[..., None], tr.points, np.nan)
+    camera_pose = (
+        read_poses(out / "camera_poses.csv") if (out / "camera_poses.csv").exists() else None
+    )
+    summary, series = evaluate_results(
+        times=pose.times,
+        pose=pose,
+        pose_ok=ok,
+        assembly_point=rec.object.assembly_point,
+        model_points=rec.object.points,
+        track_points=tracks,
+        camera_pose=camera_pose,
+        camera=rec.camera,
+        truth_object=truth.object_pose,
+        truth_camera_pose=truth.camera_pose,
+        truth_camera=truth.camera,
+    )
+    if plots:
+        from ..io.plots import plot_errors, plot_trajectory
+
+        a_true, a_meas = series["assembly_true"], series["assembly_measured"]
+        plot_trajectory(
+            out / "trajectory.png",
+            a_true,
+            a_meas[ok],
+            title="Assembly point: measured (red +) vs true",
+        )
+        plot_errors(out / "errors.png", pose.times[ok], a_true[ok], a_meas[ok])
+        summary["plots"] = ["trajectory.png", "errors.png"]
+    write_json(summary_path, summary)
+    return summary
