@@ -29,7 +29,7 @@ from typing import Any
 
 import numpy as np
 
-from .records import CameraCalibration, Detections, ObjectModel, PoseStream
+from .records import CameraCalibration, Detections, ObjectModel, PoseStream, quat_to_matrix
 from .tables import (
     RecordingError,
     Table,
@@ -162,19 +162,6 @@ def _axis_quat(angle: np.ndarray, axis: int) -> np.ndarray:
     return q
 
 
-def _quat_to_matrix(q: np.ndarray) -> np.ndarray:
-    q = q / np.linalg.norm(q, axis=-1, keepdims=True)
-    w, x, y, z = np.moveaxis(q, -1, 0)
-    return np.stack(
-        [
-            np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)], -1),
-            np.stack([2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)], -1),
-            np.stack([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], -1),
-        ],
-        -2,
-    )
-
-
 def kuka_to_pose(xyzabc: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """KUKA ``X, Y, Z, A, B, C`` to position and quaternion.
 
@@ -213,13 +200,13 @@ def pose_to_kuka(p: np.ndarray, q: np.ndarray) -> np.ndarray:
         raise ValueError(f"p: expected shape (n, 3), got {p.shape}")
     if q.shape != (p.shape[0], 4):
         raise ValueError(f"q: expected shape ({p.shape[0]}, 4), got {q.shape}")
-    R = _quat_to_matrix(q)
+    R = quat_to_matrix(q)
     cos_b = np.hypot(R[:, 0, 0], R[:, 1, 0])
     b = np.arctan2(-R[:, 2, 0], cos_b)
     lock = cos_b < 1e-10
     a = np.where(lock, np.arctan2(-R[:, 0, 1], R[:, 1, 1]), np.arctan2(R[:, 1, 0], R[:, 0, 0]))
     # C from what is left after removing Rz(A) Ry(B): errors in A are absorbed by C.
-    Ra = _quat_to_matrix(_quat_mul(_axis_quat(a, 2), _axis_quat(b, 1)))
+    Ra = quat_to_matrix(_quat_mul(_axis_quat(a, 2), _axis_quat(b, 1)))
     M = np.einsum("nji,njk->nik", Ra, R)
     c = np.arctan2(M[:, 2, 1], M[:, 1, 1])
     angles = np.rad2deg(np.stack([a, b, c], 1))

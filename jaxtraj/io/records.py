@@ -11,7 +11,22 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-__all__ = ["CameraCalibration", "Detections", "ObjectModel", "PoseStream"]
+__all__ = ["CameraCalibration", "Detections", "ObjectModel", "PoseStream", "quat_to_matrix"]
+
+
+def quat_to_matrix(q) -> np.ndarray:
+    """(..., 3, 3) rotation matrices of (..., 4) quaternions (w, x, y, z), normalised first."""
+    q = np.asarray(q, np.float64)
+    q = q / np.linalg.norm(q, axis=-1, keepdims=True)
+    w, x, y, z = np.moveaxis(q, -1, 0)
+    return np.stack(
+        [
+            np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)], -1),
+            np.stack([2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)], -1),
+            np.stack([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], -1),
+        ],
+        -2,
+    )
 
 
 def _array(name: str, value, shape: tuple, dtype=np.float64) -> np.ndarray:

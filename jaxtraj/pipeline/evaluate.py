@@ -9,22 +9,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..io.records import CameraCalibration, PoseStream
+from ..io.records import CameraCalibration, PoseStream, quat_to_matrix
 
-__all__ = ["evaluate_results", "quat_to_matrix", "rotation_error_deg"]
-
-
-def quat_to_matrix(q: np.ndarray) -> np.ndarray:
-    """(..., 3, 3) rotation matrices of (..., 4) unit quaternions (w, x, y, z)."""
-    w, x, y, z = np.moveaxis(np.asarray(q, float), -1, 0)
-    return np.stack(
-        [
-            np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)], -1),
-            np.stack([2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)], -1),
-            np.stack([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], -1),
-        ],
-        -2,
-    )
+__all__ = ["evaluate_results", "quat_to_matrix", "rotation_error_deg"]  # quat_to_matrix: re-export
 
 
 def rotation_error_deg(R_a: np.ndarray, R_b: np.ndarray) -> np.ndarray:

@@ -18,7 +18,7 @@ import numpy as np
 
 from ..io.formats import ImuNoise, ImuSamples, RecordingMeta, RobotNoise
 from ..io.recording import Recording, Truth, write_recording_files
-from ..io.records import CameraCalibration, ObjectModel, PoseStream
+from ..io.records import CameraCalibration, ObjectModel, PoseStream, quat_to_matrix
 from ..io.tables import atomic_folder
 from .cell import SimulatedCell, pose_matrix
 from .render import PlanarTexture, chessboard_texture, marker_board, render
@@ -31,21 +31,9 @@ CALIBRATION_TARGET = {"kind": "chessboard", "cols": 9, "rows": 6, "square": 0.03
 Progress = Callable[[Iterable, str, int], Iterable]
 
 
-def _quat_to_matrix(q: np.ndarray) -> np.ndarray:
-    w, x, y, z = np.moveaxis(np.asarray(q, float), -1, 0)
-    return np.stack(
-        [
-            np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)], -1),
-            np.stack([2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)], -1),
-            np.stack([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], -1),
-        ],
-        -2,
-    )
-
-
 def pose_matrices(poses: PoseStream) -> np.ndarray:
     """(N, 4, 4) transforms of a pose stream."""
-    return pose_matrix(_quat_to_matrix(poses.q), poses.p)
+    return pose_matrix(quat_to_matrix(poses.q), poses.p)
 
 
 def workpiece(cell: SimulatedCell) -> tuple[list[PlanarTexture], ObjectModel]:
@@ -182,7 +170,7 @@ def _noisy(poses: PoseStream, noise, rng: np.random.Generator) -> PoseStream:
     from .cell import _rot
 
     n = len(poses.times)
-    R = _quat_to_matrix(poses.q)
+    R = quat_to_matrix(poses.q)
     dR = np.stack([_rot(v) for v in rng.normal(0, float(noise.orientation), (n, 3))])
     T = pose_matrix(R @ dR, poses.p + rng.normal(0, float(noise.position), (n, 3)))
     from .cell import _pose_stream

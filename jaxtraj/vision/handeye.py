@@ -15,6 +15,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..io.records import quat_to_matrix
+
 __all__ = ["HandEyeResult", "calibrate_hand_eye", "hand_eye_residuals", "target_poses_from_views"]
 
 _METHODS = ("tsai", "park", "horaud", "andreff", "daniilidis")
@@ -24,24 +26,10 @@ def _rot_angle(R):
     return np.arccos(np.clip((np.trace(R, axis1=-2, axis2=-1) - 1) / 2, -1.0, 1.0))
 
 
-def _quat_to_matrix(q):
-    q = np.asarray(q, float)
-    q = q / np.linalg.norm(q, axis=-1, keepdims=True)
-    w, x, y, z = np.moveaxis(q, -1, 0)
-    return np.stack(
-        [
-            np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)], -1),
-            np.stack([2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)], -1),
-            np.stack([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], -1),
-        ],
-        -2,
-    )
-
-
 def _as_matrices(name, R_or_q, t):
     R_or_q, t = np.asarray(R_or_q, float), np.asarray(t, float)
     if R_or_q.ndim == 2 and R_or_q.shape[1] == 4:
-        R = _quat_to_matrix(R_or_q)
+        R = quat_to_matrix(R_or_q)
     elif R_or_q.ndim == 3 and R_or_q.shape[1:] == (3, 3):
         R = R_or_q
     else:
