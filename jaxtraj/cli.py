@@ -117,6 +117,12 @@ def build_parser() -> argparse.ArgumentParser:
         action="store_true",
         help="write the robot latency into recording.json (default: leave it to be estimated)",
     )
+    sim.add_argument(
+        "--kuka",
+        action="store_true",
+        help="write robot.csv in KUKA form (X, Y, Z in mm; A, B, C in degrees) instead of "
+        "position + quaternion",
+    )
 
     cal = sub.add_parser(
         "calibrate",

@@ -29,6 +29,7 @@ def _simulate(args: Namespace, progress) -> int:
         frames=args.frames,
         duration=args.duration,
         latency_known=args.latency_known,
+        kuka=args.kuka,
         progress=progress,
     )
     print(

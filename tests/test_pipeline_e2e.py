@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 import json
+import shutil
 
 import numpy as np
 import pytest
@@ -12,12 +13,14 @@ from jaxtraj.cli import EXIT_OK, TARGET_ORIENTATION_DEG, TARGET_POSITION_MM, mai
 from jaxtraj.io import read_poses, read_truth
 from jaxtraj.pipeline.evaluate import quat_to_matrix, rotation_error_deg
 
+SIZE = ["--frames", "40", "--duration", "4", "--seed", "5"]
+
 
 @pytest.fixture(scope="module")
 def run(tmp_path_factory):
     rec = tmp_path_factory.mktemp("e2e") / "recording"
     codes = [
-        main(["--quiet", "simulate", str(rec), "--frames", "40", "--duration", "4", "--seed", "5"]),
+        main(["--quiet", "simulate", str(rec), "--kuka", *SIZE]),
         main(["--quiet", "calibrate", str(rec)]),
         main(["--quiet", "fuse", str(rec)]),
         main(["--quiet", "reconstruct", str(rec)]),
@@ -65,3 +68,25 @@ def test_calibration_and_fusion_are_accurate(run):
     assert fusion["latency_estimated"]
     assert abs(fusion["robot_latency_s"] - 0.004) < 1.5e-3
     assert 3.0 < fusion["nis_mean"] < 12.0  # 6 expected for 6-dof pose updates
+
+
+def test_the_robot_log_went_through_the_kuka_form(run):
+    rec, _ = run
+    header = (rec / "robot.csv").read_text().splitlines()[0]
+    assert header.replace(" ", "") == "t,X,Y,Z,A,B,C"
+
+
+def test_a_detections_csv_recording_gives_the_same_pose(run, tmp_path):
+    """A cell that writes detections instead of images: same results as from the images."""
+    rec, _ = run
+    copy = tmp_path / "recording"
+    shutil.copytree(rec, copy, ignore=shutil.ignore_patterns("images", "images.csv"))
+    shutil.copy(rec / "results" / "detections.csv", copy / "detections.csv")
+    (copy / "results" / "report.json").unlink()
+    assert main(["--quiet", "reconstruct", str(copy), "--track-method", "none"]) == EXIT_OK
+    a = read_poses(rec / "results" / "pose.csv")
+    b = read_poses(copy / "results" / "pose.csv")
+    np.testing.assert_allclose(b.p, a.p, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(b.q, a.q, rtol=0, atol=1e-12)
+    report = json.loads((copy / "results" / "report.json").read_text())
+    assert report["frames_with_pose"] == 40 and report["tracks"] is None

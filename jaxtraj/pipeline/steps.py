@@ -70,6 +70,7 @@ def step_simulate(
     frames: int = 150,
     duration: float = 10.0,
     latency_known: bool = False,
+    kuka: bool = False,
     progress: Progress | None = None,
 ) -> Path:
     """Simulate a robot cell and write its recording folder with rendered images."""
@@ -78,7 +79,7 @@ def step_simulate(
 
     cell = simulate_cell(CellConfig(n_images=frames, duration=duration), seed=seed)
     return write_simulated_recording(
-        cell, out, seed=seed, robot_latency_known=latency_known, progress=progress
+        cell, out, seed=seed, robot_latency_known=latency_known, kuka=kuka, progress=progress
     )
 
 

@@ -80,6 +80,7 @@ def write_simulated_recording(
     *,
     seed: int = 0,
     robot_latency_known: bool = False,
+    kuka: bool = False,
     progress: Progress | None = None,
 ) -> Path:
     """Render the cell's images and write its recording folder (atomically).
@@ -90,6 +91,7 @@ def write_simulated_recording(
         seed: seed of the image noise.
         robot_latency_known: write the true latency into ``recording.json``; otherwise
             it is left for ``jaxtraj fuse`` to estimate.
+        kuka: write the robot poses in KUKA form (X, Y, Z [mm], A, B, C [deg]).
         progress: ``progress(iterable, description, total)`` wrapping the render loops
             (e.g. a tqdm bar); None for none.
 
@@ -158,7 +160,7 @@ def write_simulated_recording(
         truth = Truth(
             object_pose=cell.object_pose, camera_pose=cell.camera_pose, camera=true_camera
         )
-        write_recording_files(tmp, rec, truth=truth)
+        write_recording_files(tmp, rec, truth=truth, kuka=kuka)
     return folder
 
 
