@@ -601,6 +601,19 @@ def test_image_index_round_trip_and_missing_file(tmp_path):
     _assert_error(excinfo, tmp_path / "images.csv", 3, "0001.png", "does not exist")
 
 
+def test_image_index_with_paths_relative_to_the_working_directory(tmp_path, monkeypatch):
+    """A recording written to a relative folder (e.g. ``jaxtraj simulate rec``)."""
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "rec" / "images").mkdir(parents=True)
+    files = [Path("rec") / "images" / f"{i:04d}.png" for i in range(2)]
+    for f in files:
+        f.write_bytes(b"png")
+    write_image_index(Path("rec") / "images.csv", [0, 1], np.array([0.0, 0.1]), files)
+    assert (tmp_path / "rec" / "images.csv").read_text().splitlines()[1] == "0,0.0,images/0000.png"
+    _, _, back = read_image_index(tmp_path / "rec" / "images.csv")
+    assert [b.resolve() for b in back] == [(tmp_path / f).resolve() for f in files]
+
+
 def test_points_round_trip(tmp_path):
     F, M = 4, 3
     pts = RNG.standard_normal((F, M, 3))

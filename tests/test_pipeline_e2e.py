@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 import json
+import os
 import shutil
 
 import numpy as np
@@ -19,13 +20,18 @@ SIZE = ["--frames", "40", "--duration", "4", "--seed", "5"]
 @pytest.fixture(scope="module")
 def run(tmp_path_factory):
     rec = tmp_path_factory.mktemp("e2e") / "recording"
-    codes = [
-        main(["--quiet", "simulate", str(rec), "--kuka", *SIZE]),
-        main(["--quiet", "calibrate", str(rec)]),
-        main(["--quiet", "fuse", str(rec)]),
-        main(["--quiet", "reconstruct", str(rec)]),
-        main(["--quiet", "evaluate", str(rec), "--no-plots"]),
-    ]
+    here = os.getcwd()
+    os.chdir(rec.parent)  # relative paths, as a user types them
+    try:
+        codes = [
+            main(["--quiet", "simulate", "recording", "--kuka", *SIZE]),
+            main(["--quiet", "calibrate", "recording"]),
+            main(["--quiet", "fuse", "recording"]),
+            main(["--quiet", "reconstruct", "recording"]),
+            main(["--quiet", "evaluate", "recording", "--no-plots"]),
+        ]
+    finally:
+        os.chdir(here)
     return rec, codes
 
 

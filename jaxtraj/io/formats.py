@@ -883,14 +883,20 @@ def read_image_index(
 def write_image_index(
     path: str | Path, frames: np.ndarray, times: np.ndarray, files: Sequence[str | Path]
 ) -> None:
-    """Write ``images.csv``; files inside the folder of ``path`` are written relative to it."""
+    """Write ``images.csv``; files inside the folder of ``path`` are written relative to it.
+
+    Absolute paths and paths relative to the working directory that lie inside the folder
+    become relative to the folder; other relative paths are taken as relative to the
+    folder already and written as given.
+    """
     folder = Path(path).parent.resolve()
     rel = []
     for f in files:
         f = Path(f)
-        if f.is_absolute():
+        candidate = f if f.is_absolute() else Path.cwd() / f
+        if f.is_absolute() or candidate.exists():
             try:
-                f = f.resolve().relative_to(folder)
+                f = candidate.resolve().relative_to(folder)
             except ValueError:
                 pass
         rel.append(f.as_posix())
