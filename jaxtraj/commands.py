@@ -91,9 +91,11 @@ def _reconstruct(args: Namespace, progress) -> int:
         print(f"  frame {item['frame']}: {item['note']}")
     if s["tracks"] is not None:
         bad = [i for i, t in s["tracks"].items() if not t["ok"]]
+        worst = max(t["max_posterior_std_mm"] for t in s["tracks"].values())
         print(
-            f"  per-point trajectories ({s['track_method']}): "
-            + ("all OK" if not bad else f"NOT OK for ids {', '.join(bad)}")
+            f"  per-point trajectories ({s['track_method']}, no object model): "
+            + ("all OK" if not bad else f"NOT OK (uncertain/degenerate): ids {', '.join(bad)}")
+            + f"; largest posterior std {worst:.1f} mm"
         )
     return EXIT_OK if s["frames_with_pose"] > 0 else EXIT_FAILED
 

@@ -51,6 +51,13 @@ def test_assembly_point_and_orientation_meet_the_targets(run):
     # model-based pose (tens of mm), which is why the pose does not depend on it
     assert ev["per_point_trajectories"]["count"] == 40 * 6
     assert ev["per_point_trajectories"]["mean_mm"] > ev["assembly_point_position"]["mean_mm"]
+    # ... and reconstruct says so: the tracks' posterior uncertainty flags them
+    report = json.loads((rec / "results" / "report.json").read_text())
+    stds = [t["max_posterior_std_mm"] for t in report["tracks"].values()]
+    assert all(np.isfinite(stds))
+    assert [t["ok"] for t in report["tracks"].values()] == [sd <= 10.0 for sd in stds]
+    if ev["per_point_trajectories"]["mean_mm"] > 10.0:
+        assert not any(t["ok"] for t in report["tracks"].values())
 
 
 def test_pose_file_matches_truth_independently_of_evaluate(run):

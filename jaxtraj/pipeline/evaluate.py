@@ -81,7 +81,7 @@ def evaluate_results(
     points_true = np.einsum("fij,mj->fmi", R_true, model_points) + p_true[:, None]
     if track_points is not None and np.isfinite(track_points).any():
         track_err = np.linalg.norm(track_points - points_true, axis=-1) * 1e3
-        summary["per_point_trajectories"] = _stats(track_err, "mm")
+        summary["per_point_trajectories"] = _stats(track_err, "mm")  # flagged ones included
     if camera_pose is not None and truth_camera_pose is not None:
         j = _aligned(truth_camera_pose, camera_pose.times, "camera_pose.csv")
         dp = np.linalg.norm(camera_pose.p - truth_camera_pose.p[j], axis=1) * 1e3

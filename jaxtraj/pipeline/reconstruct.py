@@ -34,6 +34,9 @@ POSE_METHODS = ("pnp", "joint")
 TRACK_METHODS = ("smoother", "dct", "none")
 #: A frame whose model-based reprojection RMS exceeds this [px] is not trusted.
 MAX_FRAME_RMS_PX = 3.0
+#: A per-point trajectory whose largest posterior standard deviation exceeds this [m] is
+#: flagged as not OK (the camera path does not determine it well).
+MAX_TRACK_STD_M = 0.01
 
 
 @dataclass(frozen=True)
@@ -51,7 +54,10 @@ class Measurement:
         assembly: (F, 3) the assembly point from the pose [m].
         track_points: (F, M, 3) per-point trajectories of the paper's method [m] (NaN
             when ``track_method="none"``).
-        track_ok: (M,) solver status OK per point; track_rms_px: (M,) reprojection RMS.
+        track_ok: (M,) solver status OK per point (and, for the smoother, posterior standard
+            deviation below :data:`MAX_TRACK_STD_M`); track_rms_px: (M,) reprojection RMS.
+        track_std: (M,) largest posterior position standard deviation over the frames [m]
+            (first-order, from the assumed pixel noise), or NaN.
         skipped: (frame, reason) for frames without a pose.
         pose_method, track_method: the estimators used.
     """
@@ -67,6 +73,7 @@ class Measurement:
     track_points: np.ndarray
     track_ok: np.ndarray
     track_rms_px: np.ndarray
+    track_std: np.ndarray
     skipped: list = field(default_factory=list)
     pose_method: str = "pnp"
     track_method: str = "smoother"
@@ -112,7 +119,7 @@ def reconstruct_recording(
     pose_method: str = "pnp",
     track_method: str = "smoother",
     k: int = 20,
-    pixel_sigma: float = 0.2,
+    pixel_sigma: float = 0.1,
 ) -> Measurement:
     """Measure the workpiece from its detections and the fused camera poses.
 
@@ -196,8 +203,9 @@ def reconstruct_recording(
     track_points = np.full((F, M, 3), np.nan)
     track_ok = np.zeros(M, bool)
     track_rms = np.full(M, np.nan)
+    track_std = np.full(M, np.nan)
     if track_method != "none":
-        track_points, track_ok, track_rms = _tracks(
+        track_points, track_ok, track_rms, track_std = _tracks(
             track_method, P, uv, detections.times, weights, k, pixel_sigma
         )
     pose = PoseStream(detections.times, t_w_o, _rotation_to_quat(R_w_o))
@@ -213,6 +221,7 @@ def reconstruct_recording(
         track_points=track_points,
         track_ok=track_ok,
         track_rms_px=track_rms,
+        track_std=track_std,
         skipped=skipped,
         pose_method=pose_method,
         track_method=track_method,
@@ -220,19 +229,28 @@ def reconstruct_recording(
 
 
 def _tracks(method, P, uv, times, weights, k, pixel_sigma):
-    """Per-point trajectories (F, M, 3), OK flags (M,) and RMS (M,), the paper's way."""
+    """Per-point trajectories (F, M, 3), OK flags (M,), RMS (M,) and largest posterior
+    standard deviation (M,) [m], the paper's way (each point on its own)."""
+    from ..solve import Status
+
     uv_t, w_t = np.swapaxes(uv, 0, 1), weights.T
     if method == "dct":
-        from ..solve import Status, reconstruct_points
+        from ..estimators.covariance import dct_covariance
+        from ..solve import reconstruct_points
 
         basis = DCTBasis.from_times(times, k)(times)
         res = reconstruct_points(P, uv_t, basis, w_t)
-        pts, ok, rms = res.points, np.asarray(res.status == Status.OK), res.rms_px
+        cov = jax.vmap(
+            lambda u, c, w: dct_covariance(P, u, basis, c, w, pixel_sigma=pixel_sigma).points
+        )(jnp.asarray(uv_t), res.coeffs, jnp.asarray(w_t))
+        pts, rms = res.points, res.rms_px
+        ok = np.asarray(res.status == Status.OK)
     else:
         from ..estimators import smooth_points
 
-        res = smooth_points(P, uv_t, times, w_t, pixel_sigma=pixel_sigma, covariance=False)
-        pts = res.points
-        ok = np.asarray(jnp.all(jnp.isfinite(pts), axis=(-2, -1)))
-        rms = res.rms_px
-    return np.swapaxes(np.asarray(pts), 0, 1), np.asarray(ok, bool), np.asarray(rms)
+        res = smooth_points(P, uv_t, times, w_t, pixel_sigma=pixel_sigma, covariance=True)
+        pts, cov, rms = res.points, res.cov, res.rms_px
+        ok = np.asarray(res.status == Status.OK)
+    std = np.sqrt(np.max(np.trace(np.asarray(cov), axis1=-2, axis2=-1), axis=-1))
+    ok = ok & np.all(np.isfinite(np.asarray(pts)), axis=(-2, -1)) & (std <= MAX_TRACK_STD_M)
+    return np.swapaxes(np.asarray(pts), 0, 1), ok, np.asarray(rms), std

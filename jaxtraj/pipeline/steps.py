@@ -215,7 +215,7 @@ def step_reconstruct(
             out / "tracks.csv",
             meas.times,
             meas.ids,
-            np.nan_to_num(meas.track_points),
+            meas.track_points,
             track_ok,
             meas.frames,
         )
@@ -232,8 +232,14 @@ def step_reconstruct(
             "max": float(np.nanmax(meas.pose_rms_px)),
         },
         "tracks": {
-            str(int(i)): {"ok": bool(o), "reprojection_rms_px": float(r)}
-            for i, o, r in zip(meas.ids, meas.track_ok, meas.track_rms_px, strict=False)
+            str(int(i)): {
+                "ok": bool(o),
+                "reprojection_rms_px": float(r),
+                "max_posterior_std_mm": float(sd * 1e3),
+            }
+            for i, o, r, sd in zip(
+                meas.ids, meas.track_ok, meas.track_rms_px, meas.track_std, strict=True
+            )
         }
         if track_method != "none"
         else None,
@@ -265,7 +271,7 @@ def step_evaluate(recording: Path, out: Path | None = None, *, plots: bool = Tru
         from ..io.formats import read_points
 
         tr = read_points(out / "tracks.csv")
-        tracks = np.where(tr.ok[..., None], tr.points, np.nan)
+        tracks = tr.points  # all of them, also those flagged as uncertain (tr.ok)
     camera_pose = (
         read_poses(out / "camera_poses.csv") if (out / "camera_poses.csv").exists() else None
     )
