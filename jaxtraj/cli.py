@@ -157,10 +157,12 @@ def build_parser() -> argparse.ArgumentParser:
         description="Detect the object model's markers in the images (or read "
         "detections.csv), then measure the workpiece pose per image and the per-point "
         "trajectories; needs camera.json and the results of `jaxtraj fuse`. Writes "
-        "pose.csv/.tum, assembly.csv, points.csv, tracks.csv, detections.csv, report.json.",
+        "pose.csv/.tum, assembly.csv, points.csv, tracks.csv, detections.csv, report.json and "
+        "measurement.png.",
     )
     _add_results(rec)
     _add_reconstruct_options(rec)
+    rec.add_argument("--no-plots", action="store_true", help="skip measurement.png")
 
     ev = sub.add_parser(
         "evaluate",

@@ -78,6 +78,7 @@ def _reconstruct(args: Namespace, progress) -> int:
         pose_method=args.pose_method,
         track_method=args.track_method,
         k=args.k,
+        plots=not args.no_plots,
         progress=progress,
     )
     print(
@@ -159,7 +160,7 @@ def _demo(args: Namespace, progress) -> int:
         f"  3 fuse        ESKF + RTS smoother, latency {fu['robot_latency_s'] * 1e3:.2f} ms "
         f"(estimated; true {_TRUE_LATENCY_MS:.2f} ms), NIS {fu['nis_mean']:.2f}"
     )
-    rc = steps.step_reconstruct(recording, progress=progress)
+    rc = steps.step_reconstruct(recording, plots=not args.no_plots, progress=progress)
     print(
         f"  4 reconstruct {rc['frames_with_pose']}/{rc['frames']} images with a pose, "
         f"{rc['detections_per_frame']['mean']:.1f} markers per image, "

@@ -83,6 +83,12 @@ def test_calibration_and_fusion_are_accurate(run):
     assert 3.0 < fusion["nis_mean"] < 12.0  # 6 expected for 6-dof pose updates
 
 
+def test_reconstruct_writes_its_plot(run):
+    rec, _ = run
+    png = (rec / "results" / "measurement.png").read_bytes()
+    assert png[:8] == b"\x89PNG\r\n\x1a\n" and len(png) > 10_000
+
+
 def test_the_robot_log_went_through_the_kuka_form(run):
     rec, _ = run
     header = (rec / "robot.csv").read_text().splitlines()[0]

@@ -10,7 +10,7 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["plot_errors", "plot_trajectory"]
+__all__ = ["plot_errors", "plot_measurement", "plot_trajectory"]
 
 
 def _pyplot():
@@ -89,4 +89,27 @@ def plot_errors(
     axes[3].set_xlabel("time [s]")
     axes[3].legend(fontsize=8)
     axes[0].set_title(title)
+    return _save(fig, path)
+
+
+def plot_measurement(
+    path: str | Path,
+    times: np.ndarray,
+    assembly: np.ndarray,
+    angles_deg: np.ndarray,
+    ok: np.ndarray,
+    title: str = "Measured workpiece",
+) -> Path:
+    """The measured assembly point (x, y, z [mm]) and workpiece rotation angle [deg] over
+    time; frames without a pose are left out (no ground truth needed)."""
+    plt = _pyplot()
+    t, a, ang = times[ok], assembly[ok] * 1e3, angles_deg[ok]
+    fig, axes = plt.subplots(4, 1, figsize=(7, 7.5), sharex=True)
+    for i, name in enumerate("xyz"):
+        axes[i].plot(t, a[:, i], ".-", ms=3, lw=0.6)
+        axes[i].set_ylabel(f"{name} [mm]")
+    axes[3].plot(t, ang, ".-", ms=3, lw=0.6, color="tab:purple")
+    axes[3].set_ylabel("rotation [deg]")
+    axes[3].set_xlabel("time [s]")
+    axes[0].set_title(f"{title} ({int(ok.sum())}/{len(ok)} images with a pose)")
     return _save(fig, path)

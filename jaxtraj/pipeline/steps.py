@@ -14,6 +14,7 @@ Results folder::
       detections.csv                       reference points found in the images
       pose.csv, pose.tum                   workpiece pose T_w_o per image
       assembly.csv                         the assembly point per image (t, x, y, z, ok)
+      measurement.png                      assembly point and rotation over time
       points.csv                           reference points from the pose
       tracks.csv                           per-point trajectories (the paper's method)
       report.json                          what reconstruct did, skipped frames, methods
@@ -174,9 +175,11 @@ def step_reconstruct(
     pose_method: str = "pnp",
     track_method: str = "smoother",
     k: int = 20,
+    plots: bool = True,
     progress: Progress | None = None,
 ) -> dict:
-    """Detect (if images), then measure trajectories and the 6-DoF pose; write results."""
+    """Detect (if images), then measure trajectories and the 6-DoF pose; write results
+    (and ``measurement.png``: the assembly point and rotation over time)."""
     from .detect import detect_images
     from .reconstruct import reconstruct_recording
 
@@ -219,6 +222,14 @@ def step_reconstruct(
             track_ok,
             meas.frames,
         )
+    if plots:
+        from ..io.plots import plot_measurement
+        from .evaluate import quat_to_matrix, rotation_error_deg
+
+        R = quat_to_matrix(meas.pose.q)
+        first = int(np.flatnonzero(meas.pose_ok)[0])
+        angles = rotation_error_deg(R[first], R)  # rotation since the first pose
+        plot_measurement(out / "measurement.png", meas.times, meas.assembly, angles, meas.pose_ok)
     detected = det.detected.sum(axis=1)
     summary = {
         "frames": len(meas.times),
