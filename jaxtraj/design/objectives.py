@@ -1,0 +1,156 @@
+"""Differentiable measures of how well a camera path measures a workpiece trajectory.
+
+* :func:`expected_error` - the RMS error of the DCT reconstruction that the path would
+  give: the noise-free reconstruction's error (basis truncation amplified by the
+  conditioning, through the batched solve) plus the pixel-noise variance from the
+  solver's first-order covariance, ``E = sqrt(mean_i ||x_hat_i - x_i||^2 + tr Cov_i)``.
+  Averaged over a set of plausible workpiece trajectories (vmapped).
+* :func:`path_reconstructibility` - Park et al.'s eta of the path for the same set
+  (geometric mean).
+
+The camera always looks at the *predicted* trajectory; the plausible trajectories are
+what the workpiece may actually do (e.g. the prediction plus smooth random deviations).
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+from jaxtyping import Array, ArrayLike, Float
+
+from ..analysis import reconstructibility
+from ..basis import DCTBasis
+from ..estimators.covariance import dct_covariance
+from ..solve import reconstruct
+from .path import CameraPathModel
+
+__all__ = [
+    "expected_error",
+    "expected_error_for_cameras",
+    "monte_carlo_error",
+    "path_reconstructibility",
+    "plausible_trajectories",
+    "project_points",
+    "sampled_limits",
+]
+
+
+def project_points(P: Float[Array, "F 3 4"], X: Float[Array, "F 3"]) -> Float[Array, "F 2"]:
+    """Pixels (F, 2) of one point per frame under (F, 3, 4) projection matrices."""
+    h = jnp.einsum("fij,fj->fi", P[:, :, :3], X) + P[:, :, 3]
+    return h[:, :2] / h[:, 2:3]
+
+
+def _one_error(P, x, basis, pixel_sigma):
+    uv = project_points(P, x)
+    rec = reconstruct(P, uv, basis, diagnostics=False)
+    bias2 = jnp.mean(jnp.sum((rec.points - x) ** 2, axis=-1))
+    cov = dct_covariance(P, uv, basis, rec.coeffs, pixel_sigma=pixel_sigma)
+    var = jnp.mean(jnp.trace(cov.points, axis1=-2, axis2=-1))
+    return bias2 + var
+
+
+def expected_error(
+    model: CameraPathModel,
+    theta: Float[ArrayLike, "k 3"],
+    K: Float[ArrayLike, "3 3"],
+    predicted: Float[ArrayLike, "F 3"],
+    samples: Float[ArrayLike, "S F 3"],
+    basis: Float[ArrayLike, "F kb"],
+    pixel_sigma: float = 0.3,
+) -> Float[Array, ""]:
+    """Expected RMS reconstruction error [m] of the DCT method for the path ``theta``.
+
+    Args:
+        model: the camera path model; theta: (k, 3) its parameters.
+        K: (3, 3) camera matrix.
+        predicted: (F, 3) predicted workpiece point (where the camera looks).
+        samples: (S, F, 3) plausible true trajectories (S >= 1; may include ``predicted``).
+        basis: (F, kb) the reconstruction's trajectory basis at the image times.
+        pixel_sigma: detection noise [px].
+
+    Returns:
+        ``sqrt(mean_s mean_i E||x_hat - x||^2)`` [m]; differentiable in ``theta``.
+    """
+    P = model.projection_matrices(theta, K, predicted)
+    return expected_error_for_cameras(P, samples, basis, pixel_sigma)
+
+
+def expected_error_for_cameras(
+    P: Float[ArrayLike, "F 3 4"],
+    samples: Float[ArrayLike, "S F 3"],
+    basis: Float[ArrayLike, "F kb"],
+    pixel_sigma: float = 0.3,
+) -> Float[Array, ""]:
+    """:func:`expected_error` for given cameras (F, 3, 4), e.g. a heuristic path."""
+    P = jnp.asarray(P)
+    basis = jnp.asarray(basis, P.dtype)
+    mse = jax.vmap(lambda x: _one_error(P, x, basis, pixel_sigma))(jnp.asarray(samples, P.dtype))
+    return jnp.sqrt(jnp.mean(mse))
+
+
+def path_reconstructibility(
+    model: CameraPathModel,
+    theta: Float[ArrayLike, "k 3"],
+    samples: Float[ArrayLike, "S F 3"],
+    basis: Float[ArrayLike, "F kb"],
+) -> Float[Array, ""]:
+    """Geometric mean over the samples of eta (Park et al.) of the camera path."""
+    c = model.centres(theta)
+    etas = jax.vmap(lambda x: reconstructibility(c, x, basis))(jnp.asarray(samples, c.dtype))
+    return jnp.exp(jnp.mean(jnp.log(etas)))
+
+
+def plausible_trajectories(
+    key: Array,
+    predicted: Float[ArrayLike, "F 3"],
+    times: Float[ArrayLike, " F"],
+    n: int,
+    extent: float = 0.05,
+    n_terms: int = 4,
+) -> Float[Array, "n+1 F 3"]:
+    """The prediction and ``n`` smooth random deviations from it, a simple prior on what
+    the workpiece may do: ``predicted + d_j`` with ``d_j`` a random combination of the
+    DCT vectors 1..``n_terms`` (no constant), scaled to a largest excursion of ``extent``
+    [m] per axis. Row 0 is the prediction itself."""
+    predicted = jnp.asarray(predicted)
+    times = jnp.asarray(times, predicted.dtype)
+    rows = DCTBasis.from_times(times, n_terms + 1)(times)[:, 1:]
+    coef = jax.random.normal(key, (n, n_terms, 3), predicted.dtype)
+    dev = jnp.einsum("fk,nkc->nfc", rows, coef)
+    dev = dev * (extent / jnp.max(jnp.abs(dev), axis=1, keepdims=True))
+    return jnp.concatenate([predicted[None], predicted[None] + dev], 0)
+
+
+def monte_carlo_error(
+    key: Array,
+    P: Float[ArrayLike, "F 3 4"],
+    samples: Float[ArrayLike, "S F 3"],
+    basis: Float[ArrayLike, "F kb"],
+    pixel_sigma: float = 0.3,
+    draws: int = 64,
+) -> Float[Array, ""]:
+    """Mean Euclidean error [m] of the DCT reconstruction over ``draws`` noisy pixel sets
+    per sample trajectory (the simulated counterpart of :func:`expected_error`)."""
+    P = jnp.asarray(P)
+    basis = jnp.asarray(basis, P.dtype)
+    samples = jnp.asarray(samples, P.dtype)
+
+    def one(k, x):
+        uv = project_points(P, x) + pixel_sigma * jax.random.normal(k, (x.shape[0], 2), P.dtype)
+        return jnp.mean(jnp.linalg.norm(reconstruct(P, uv, basis).points - x, axis=1))
+
+    keys = jax.random.split(key, (samples.shape[0], draws))
+    errs = jax.vmap(lambda ks, x: jax.vmap(lambda k: one(k, x))(ks))(keys, samples)
+    return jnp.mean(errs)
+
+
+def sampled_limits(centres: Float[ArrayLike, "F 3"], times: Float[ArrayLike, " F"]):
+    """Peak speed [m/s] and acceleration [m/s^2] implied by camera centres at the image
+    times (finite differences; for paths given only at the images, e.g. the paper's random
+    discontinuous camera)."""
+    c, t = jnp.asarray(centres), jnp.asarray(times)
+    v = jnp.diff(c, axis=0) / jnp.diff(t)[:, None]
+    tm = 0.5 * (t[1:] + t[:-1])
+    a = jnp.diff(v, axis=0) / jnp.diff(tm)[:, None]
+    return jnp.max(jnp.linalg.norm(v, axis=1)), jnp.max(jnp.linalg.norm(a, axis=1))

@@ -1,0 +1,173 @@
+"""Optimise a camera path: minimise the expected error (or maximise eta) under the limits.
+
+The constraints enter as a quadratic penalty ``mu sum max(g, 0)^2`` with continuation
+(``mu`` raised round by round, each round a BFGS run of optimistix started where the last
+ended), so the result is feasible to about ``1 / mu``. Several initial guesses run at
+once (``vmap``); the best feasible one is reported, with the constraints that are active
+(within ``active_tol`` of their limit) and the largest violation of each.
+"""
+
+from __future__ import annotations
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import optimistix as optx
+from jaxtyping import Array, ArrayLike, Bool, Float
+
+from .constraints import CONSTRAINTS, CellLimits, constraint_values, penalty
+from .objectives import expected_error, path_reconstructibility
+from .path import CameraPathModel
+
+__all__ = ["PathDesign", "design_camera_path", "evaluate_path"]
+
+OBJECTIVES = ("error", "eta")
+
+
+class PathDesign(eqx.Module):
+    """A designed (or evaluated) camera path.
+
+    Attributes:
+        theta: (k, 3) path parameters.
+        expected_error: expected RMS reconstruction error [m].
+        eta: reconstructibility (geometric mean over the samples).
+        violation: (C,) largest normalised constraint value per constraint, in the order
+            of :data:`~jaxtraj.design.constraints.CONSTRAINTS` (<= 0: satisfied).
+        active: (C,) constraints within ``active_tol`` of their limit.
+        feasible: every violation <= ``feasible_tol``.
+        peak_velocity [m/s], peak_acceleration [m/s^2]: on the limit grid.
+    """
+
+    theta: Float[Array, "k 3"]
+    expected_error: Float[Array, ""]
+    eta: Float[Array, ""]
+    violation: Float[Array, " C"]
+    active: Bool[Array, " C"]
+    feasible: Bool[Array, ""]
+    peak_velocity: Float[Array, ""]
+    peak_acceleration: Float[Array, ""]
+
+    def report(self) -> dict:
+        """The constraints by name: value, active, satisfied (host-side, one design)."""
+        return {
+            name: {
+                "max_value": float(self.violation[i]),
+                "active": bool(self.active[i]),
+                "satisfied": bool(self.violation[i] <= 1e-3),
+            }
+            for i, name in enumerate(CONSTRAINTS)
+        }
+
+
+def evaluate_path(
+    model: CameraPathModel,
+    theta: Float[ArrayLike, "k 3"],
+    K: Float[ArrayLike, "3 3"],
+    predicted: Float[ArrayLike, "F 3"],
+    samples: Float[ArrayLike, "S F 3"],
+    basis: Float[ArrayLike, "F kb"],
+    limits: CellLimits,
+    *,
+    pixel_sigma: float = 0.3,
+    active_tol: float = 0.02,
+    feasible_tol: float = 1e-3,
+) -> PathDesign:
+    """Objectives and constraint report of one path (jit- and vmap-compatible)."""
+    theta = jnp.asarray(theta)
+    values = constraint_values(model, theta, limits, predicted, samples)
+    viol = jnp.stack([jnp.max(values[name]) for name in CONSTRAINTS])
+    return PathDesign(
+        theta=theta,
+        expected_error=expected_error(model, theta, K, predicted, samples, basis, pixel_sigma),
+        eta=path_reconstructibility(model, theta, samples, basis),
+        violation=viol,
+        active=jnp.abs(viol) <= active_tol,
+        feasible=jnp.all(viol <= feasible_tol),
+        peak_velocity=jnp.max(jnp.linalg.norm(model.velocity(theta), axis=1)),
+        peak_acceleration=jnp.max(jnp.linalg.norm(model.acceleration(theta), axis=1)),
+    )
+
+
+def _objective(kind, model, K, predicted, samples, basis, limits, pixel_sigma):
+    def f(theta, mu):
+        if kind == "error":
+            main = jnp.log(expected_error(model, theta, K, predicted, samples, basis, pixel_sigma))
+        else:
+            main = -jnp.log(path_reconstructibility(model, theta, samples, basis))
+        return main + mu * penalty(constraint_values(model, theta, limits, predicted, samples))
+
+    return f
+
+
+@eqx.filter_jit
+def _optimise(theta0, f, mus, max_steps, rtol):
+    solver = optx.BFGS(rtol=rtol, atol=rtol * 1e-2)
+
+    def round_(theta, mu):
+        sol = optx.minimise(f, solver, theta, args=mu, max_steps=max_steps, throw=False)
+        new = f(sol.value, mu)
+        better = jnp.isfinite(new) & (new <= f(theta, mu))
+        return jnp.where(better, sol.value, theta), sol.result == optx.RESULTS.successful
+
+    def one(theta):
+        theta, ok = jax.lax.scan(round_, theta, mus)  # one compiled round for every mu
+        return theta, jnp.all(ok)
+
+    return jax.vmap(one)(theta0)
+
+
+def design_camera_path(
+    model: CameraPathModel,
+    K: Float[ArrayLike, "3 3"],
+    predicted: Float[ArrayLike, "F 3"],
+    samples: Float[ArrayLike, "S F 3"],
+    basis: Float[ArrayLike, "F kb"],
+    limits: CellLimits,
+    inits: Float[ArrayLike, "B k 3"],
+    *,
+    objective: str = "error",
+    pixel_sigma: float = 0.3,
+    penalty_weights: tuple[float, ...] = (1e1, 1e3, 1e5),
+    max_steps: int = 300,
+    rtol: float = 1e-6,
+) -> tuple[PathDesign, PathDesign, Array]:
+    """Design a camera path from several initial guesses at once.
+
+    Args:
+        model: the path model (start position, basis, limit grid).
+        K: (3, 3) camera matrix.
+        predicted: (F, 3) predicted workpiece point at the image times (the camera looks
+            at it).
+        samples: (S, F, 3) plausible workpiece trajectories the path must measure well.
+        basis: (F, kb) the reconstruction's basis at the image times.
+        limits: the cell's limits.
+        inits: (B, k, 3) initial parameters (e.g. :meth:`CameraPathModel.fit` of heuristic
+            paths).
+        objective: ``"error"`` (expected RMS error, default) or ``"eta"`` (maximise eta).
+        pixel_sigma: detection noise [px].
+        penalty_weights: the penalty continuation ``mu`` per round.
+        max_steps: BFGS steps per round; rtol: its tolerance.
+
+    Returns:
+        ``(best, all_designs, converged)``: the best feasible design (lowest expected
+        error; the least infeasible if none is feasible), all B designs (leading axis B),
+        and (B,) the optimiser's convergence flags.
+    """
+    if objective not in OBJECTIVES:
+        raise ValueError(f"objective: expected one of {OBJECTIVES}, got {objective!r}")
+    inits = jnp.asarray(inits)
+    if inits.ndim != 3 or inits.shape[1:] != (model.k, 3):
+        raise ValueError(f"inits: expected shape (B, {model.k}, 3), got {inits.shape}")
+    f = _objective(objective, model, K, predicted, samples, basis, limits, pixel_sigma)
+    mus = jnp.asarray(penalty_weights, inits.dtype)
+    thetas, converged = _optimise(inits, f, mus, max_steps, rtol)
+    designs = jax.vmap(
+        lambda th: evaluate_path(
+            model, th, K, predicted, samples, basis, limits, pixel_sigma=pixel_sigma
+        )
+    )(thetas)
+    worst = jnp.max(designs.violation, axis=1)
+    score = jnp.where(designs.feasible, designs.expected_error, jnp.inf)
+    i = jnp.where(jnp.any(designs.feasible), jnp.argmin(score), jnp.argmin(worst))
+    best = jax.tree_util.tree_map(lambda a: a[i], designs)
+    return best, designs, converged
