@@ -95,7 +95,7 @@ def test_the_camera_looks_at_the_predicted_point(cell):
 
 def test_expected_error_gradient_equals_finite_differences(cell):
     c = cell
-    f = lambda th: expected_error(c["model"], th, K, c["pred"], c["samples"], c["basis"])  # noqa: E731
+    f = jax.jit(lambda th: expected_error(c["model"], th, K, c["pred"], c["samples"], c["basis"]))
     check_grads(f, (c["wiggle"],), order=1, modes=["rev"], eps=1e-6, atol=1e-5, rtol=1e-4)
 
 
@@ -108,7 +108,9 @@ def test_constraint_penalty_gradient_equals_finite_differences(cell):
         max_acceleration=0.02,
         end_offset=OFFSET,
     )
-    f = lambda th: penalty(constraint_values(c["model"], th, tight, c["pred"], c["samples"]))  # noqa: E731
+    f = jax.jit(
+        lambda th: penalty(constraint_values(c["model"], th, tight, c["pred"], c["samples"]))
+    )
     assert float(f(c["wiggle"])) > 0  # some limits are violated, so the gradient is not 0
     check_grads(f, (c["wiggle"],), order=1, modes=["rev"], eps=1e-6, atol=1e-5, rtol=1e-4)
 
