@@ -6,6 +6,7 @@ Sub-commands (``jaxtraj COMMAND --help`` explains each option):
     fuse         camera poses at the image times from the IMU and robot logs
     reconstruct  detect the markers, measure the trajectories and the 6-DoF pose
     evaluate     compare the results with the simulation's ground truth
+    batch        many point tracks from .npy files: chunked, sharded, resumable
     demo         all of the above on a simulated cell (``--paper``: the paper's
                  section-5 experiment on ideal detections instead)
 
@@ -185,6 +186,38 @@ def build_parser() -> argparse.ArgumentParser:
         default=None,
         help="exit 1 if the mean orientation error exceeds this [deg]",
     )
+
+    batch = sub.add_parser(
+        "batch",
+        help="reconstruct millions of point tracks from .npy files, chunked and resumable",
+        description="Reconstruct every track of a batch dataset (cameras.npz, tracks.npy, "
+        "optional weights.npy; layout in jaxtraj.scale.chunked) with the DCT basis, in "
+        "fixed-size chunks sharded over the devices, writing points.npy, coeffs.npy, "
+        "rms_px.npy, gain.npy, status.npy into OUT. An interrupted run continues where it "
+        "stopped when started again with the same options. Multi-host: start the same "
+        "command on every host with --coordinator HOST:PORT --num-processes Q "
+        "--process-id P (jax.distributed.initialize); OUT must be on a shared file system.",
+    )
+    batch.add_argument("dataset", type=Path, help="the dataset folder")
+    batch.add_argument("out", type=Path, help="the output folder")
+    batch.add_argument("--k", type=_positive_int, required=True, help="DCT basis vectors")
+    batch.add_argument(
+        "--chunk-size",
+        type=_positive_int,
+        default=4096,
+        help="points per chunk (default 4096; a multiple of the device count)",
+    )
+    batch.add_argument(
+        "--devices",
+        type=_positive_int,
+        default=None,
+        help="local devices to shard each chunk over (default: all)",
+    )
+    batch.add_argument("--restart", action="store_true", help="discard earlier progress")
+    batch.add_argument("--float32", action="store_true", help="compute in float32")
+    batch.add_argument("--coordinator", default=None, help="multi-host: HOST:PORT of process 0")
+    batch.add_argument("--num-processes", type=_positive_int, default=None, help="multi-host")
+    batch.add_argument("--process-id", type=int, default=None, help="multi-host: this process")
 
     demo = sub.add_parser(
         "demo",

@@ -180,12 +180,45 @@ def _demo(args: Namespace, progress) -> int:
     return EXIT_OK
 
 
+def _batch(args: Namespace, progress) -> int:
+    import jax.numpy as jnp
+
+    from .scale import point_mesh, run_batch
+
+    if args.coordinator is not None:
+        jax.distributed.initialize(args.coordinator, args.num_processes, args.process_id)
+    devices = jax.local_devices()
+    if args.devices is not None:
+        if args.devices > len(devices):
+            raise ValueError(f"--devices {args.devices}: only {len(devices)} local device(s)")
+        devices = devices[: args.devices]
+    mesh = point_mesh(devices) if len(devices) > 1 else None
+    s = run_batch(
+        args.dataset,
+        args.out,
+        k=args.k,
+        chunk_size=args.chunk_size,
+        mesh=mesh,
+        restart=args.restart,
+        progress=progress,
+        dtype=jnp.float32 if args.float32 else jnp.float64,
+    )
+    rate = s.computed * args.chunk_size / s.seconds if s.seconds > 0 and s.computed else 0.0
+    print(
+        f"jaxtraj batch: {s.points} points in {s.chunks} chunks on {len(devices)} device(s); "
+        f"{s.computed} computed now ({s.seconds:.1f} s, ~{rate:,.0f} points/s), "
+        f"{s.skipped} done before; status counts {s.status_counts}"
+    )
+    return EXIT_OK
+
+
 _COMMANDS = {
     "simulate": _simulate,
     "calibrate": _calibrate,
     "fuse": _fuse,
     "reconstruct": _reconstruct,
     "evaluate": _evaluate,
+    "batch": _batch,
     "demo": _demo,
 }
 

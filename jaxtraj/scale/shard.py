@@ -1,0 +1,67 @@
+"""Batch axes spread over devices with ``jax.sharding``.
+
+The points of a batch are independent, so the point axis is split over a 1-D device mesh
+(``NamedSharding(mesh, PartitionSpec("points"))``) and the jit-compiled batched solver
+runs on every device on its slice; cameras and basis are replicated. The same code runs
+on one CPU, several GPUs or TPU cores, and, after ``jax.distributed.initialize``, on the
+devices of several hosts (``jax.devices()`` then lists all of them). For tests and
+benchmarks on one CPU, ``XLA_FLAGS=--xla_force_host_platform_device_count=4`` (set before
+JAX is imported) makes four host devices.
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jax.sharding import Mesh, NamedSharding
+from jax.sharding import PartitionSpec as Pspec
+from jaxtyping import ArrayLike, Float
+
+from ..solve import Reconstruction, _reconstruct_points, _validate
+
+__all__ = ["point_mesh", "reconstruct_sharded"]
+
+
+def point_mesh(devices=None) -> Mesh:
+    """A 1-D mesh with axis ``"points"`` over ``devices`` (default: all of ``jax.devices()``)."""
+    devices = jax.devices() if devices is None else list(devices)
+    return Mesh(np.asarray(devices), ("points",))
+
+
+def reconstruct_sharded(
+    P: Float[ArrayLike, "F 3 4"],
+    uv: Float[ArrayLike, "N F 2"],
+    basis: Float[ArrayLike, "F k"],
+    weights: Float[ArrayLike, "N F"] | None = None,
+    *,
+    mesh: Mesh | None = None,
+    max_gain: float = 20.0,
+    refine: int = 1,
+    diagnostics: bool = True,
+) -> Reconstruction:
+    """:func:`jaxtraj.reconstruct_points` with the point axis sharded over ``mesh``.
+
+    N is padded to a multiple of the mesh size (padded points have weight 0 and are
+    dropped); results equal the single-device call. Outputs stay sharded on the devices
+    (``jax.device_get`` gathers them).
+    """
+    mesh = point_mesh() if mesh is None else mesh
+    batch = (np.shape(uv)[0],)
+    _validate(P, uv, basis, weights, batch=batch)
+    dtype = jnp.result_type(jnp.asarray(P).dtype, jnp.float32)
+    n = np.shape(uv)[0]
+    d = mesh.devices.size
+    pad = (-n) % d
+    uv = np.asarray(uv, dtype)
+    w = np.ones(uv.shape[:2], dtype) if weights is None else np.asarray(weights, dtype)
+    if pad:
+        uv = np.concatenate([uv, np.zeros((pad, *uv.shape[1:]), dtype)])
+        w = np.concatenate([w, np.zeros((pad, w.shape[1]), dtype)])
+    split = NamedSharding(mesh, Pspec("points"))
+    same = NamedSharding(mesh, Pspec())
+    uv_s, w_s = jax.device_put(uv, split), jax.device_put(w, split)
+    P_r = jax.device_put(jnp.asarray(P, dtype), same)
+    B_r = jax.device_put(jnp.asarray(basis, dtype), same)
+    res = _reconstruct_points(P_r, uv_s, B_r, w_s, max_gain, refine, diagnostics, None)
+    return jax.tree_util.tree_map(lambda a: a[:n], res) if pad else res
