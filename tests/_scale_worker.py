@@ -1,7 +1,8 @@
 """Run by tests/test_scale.py in a subprocess (XLA_FLAGS must be set before JAX starts).
 
 Usage: python _scale_worker.py shard OUT_JSON
-       python _scale_worker.py memory N DATASET_DIR OUT_DIR OUT_JSON
+       python _scale_worker.py make N DATASET_DIR
+       python _scale_worker.py memory DATASET_DIR OUT_DIR OUT_JSON
 """
 
 from __future__ import annotations
@@ -66,7 +67,7 @@ def shard(out_json):
     Path(out_json).write_text(json.dumps(result))
 
 
-def memory(n, dataset, out, out_json):
+def make(n, dataset):
     rng = np.random.default_rng(1)
     P, times, uv, _ = many_points(rng, 1, F=60, k=8)
     # n tracks written in blocks so that the writer's memory does not depend on n
@@ -76,17 +77,19 @@ def memory(n, dataset, out, out_json):
         b = min(n, a + 4096)
         f[a:b] = uv[0] + rng.normal(0, 0.3, (b - a, 60, 2))
     f.flush()
-    del f
-    base = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+
+
+def memory(dataset, out, out_json):
+    """Peak resident memory of a process that only runs the batch."""
     summary = run_batch(dataset, out, k=8, chunk_size=2048)
     peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
-    Path(out_json).write_text(
-        json.dumps({"n": n, "peak_kib": peak, "before_kib": base, "computed": summary.computed})
-    )
+    Path(out_json).write_text(json.dumps({"peak_kib": peak, "computed": summary.computed}))
 
 
 if __name__ == "__main__":
     if sys.argv[1] == "shard":
         shard(sys.argv[2])
+    elif sys.argv[1] == "make":
+        make(int(sys.argv[2]), sys.argv[3])
     else:
-        memory(int(sys.argv[2]), sys.argv[3], sys.argv[4], sys.argv[5])
+        memory(sys.argv[2], sys.argv[3], sys.argv[4])

@@ -121,7 +121,22 @@ def _load_cameras(dataset: Path):
     return P, times
 
 
-def _outputs(out: Path, n: int, F: int, k: int, create: bool) -> dict[str, NpyRows]:
+def _create_once(path: Path, shape: tuple, dtype) -> None:
+    """Create an output ``.npy`` (zeros) unless it exists; safe when several processes try
+    at once (the file is made under a private name and hard-linked into place)."""
+    if path.exists():
+        return
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.part")
+    np.lib.format.open_memmap(tmp, mode="w+", dtype=dtype, shape=shape).flush()
+    try:
+        os.link(tmp, path)
+    except FileExistsError:
+        pass  # another process was first
+    finally:
+        tmp.unlink()
+
+
+def _outputs(out: Path, n: int, F: int, k: int, restart: bool) -> dict[str, NpyRows]:
     specs = {
         "points": ((n, F, 3), np.float64),
         "coeffs": ((n, k, 3), np.float64),
@@ -132,11 +147,15 @@ def _outputs(out: Path, n: int, F: int, k: int, create: bool) -> dict[str, NpyRo
     files = {}
     for name, (shape, dtype) in specs.items():
         path = out / f"{name}.npy"
-        if create or not path.exists():
-            np.lib.format.open_memmap(path, mode="w+", dtype=dtype, shape=shape).flush()
+        if restart:
+            path.unlink(missing_ok=True)
+        _create_once(path, shape, dtype)
         files[name] = NpyRows(path, "r+b")
-        if tuple(files[name].shape) != shape:
-            raise ValueError(f"{path}: shape {files[name].shape} does not match {shape}")
+        if tuple(files[name].shape) != shape or files[name].dtype != np.dtype(dtype):
+            raise ValueError(
+                f"{path}: holds {files[name].dtype} {files[name].shape}, this run needs "
+                f"{np.dtype(dtype)} {shape}; use a new output folder or --restart"
+            )
     return files
 
 
@@ -178,7 +197,8 @@ def run_batch(
         k: DCT basis vectors.
         chunk_size: points per chunk (a multiple of the mesh size when ``mesh`` is given).
         mesh: a ``jax.sharding.Mesh`` with axis ``"points"`` to shard each chunk over.
-        restart: discard earlier progress in ``out`` and start again.
+        restart: discard earlier progress and outputs in ``out`` and start again (one
+            process only; for a multi-host restart, delete ``out`` instead).
         max_chunks: stop after computing this many chunks (for tests of resumption).
         process: ``(index, count)``; default ``(jax.process_index(), jax.process_count())``.
         progress: ``progress(iterable, description, total)`` wrapper (tqdm) or None.
@@ -220,7 +240,7 @@ def run_batch(
         prog_path.unlink(missing_ok=True)
     done = _read_progress(prog_path, meta)
     done_before = set(done)
-    files = _outputs(out, n, F, k, create=restart or not prog_path.exists())
+    files = _outputs(out, n, F, k, restart)
 
     basis = jnp.asarray(dct_basis(times, k), dtype)
     P_d = jnp.asarray(P, dtype)
