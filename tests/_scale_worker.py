@@ -18,7 +18,13 @@ import numpy as np
 jax.config.update("jax_enable_x64", True)
 
 from jaxtraj import dct_basis, reconstruct_points  # noqa: E402
-from jaxtraj.scale import point_mesh, reconstruct_sharded, run_batch, write_dataset  # noqa: E402
+from jaxtraj.scale import (  # noqa: E402
+    point_mesh,
+    reconstruct_recordings_sharded,
+    reconstruct_sharded,
+    run_batch,
+    write_dataset,
+)
 
 
 def many_points(rng, n, F=30, k=5):
@@ -64,7 +70,36 @@ def shard(out_json):
         "status_equal": bool(np.array_equal(np.asarray(many.status), np.asarray(one.status))),
         "chunked_sharded_vs_single": float(np.max(np.abs(pts - single))),
     }
+    # many recordings (each with its own cameras), recording axis sharded
+    recs = [many_points(np.random.default_rng(10 + r), 9) for r in range(6)]
+    Ps = np.stack([r[0] for r in recs])
+    uvs = np.stack([r[2] for r in recs])
+    rs = reconstruct_recordings_sharded(Ps, uvs, basis, mesh=point_mesh())
+    loop = np.stack(
+        [np.asarray(reconstruct_points(p, u, basis).points) for p, u in zip(Ps, uvs, strict=True)]
+    )
+    result["recordings_vs_loop"] = float(np.max(np.abs(np.asarray(rs.points) - loop)))
+    # design candidates split over the devices
+    result["design_vs_single"] = _design_check()
     Path(out_json).write_text(json.dumps(result))
+
+
+def _design_check():
+    import jax.numpy as jnp
+
+    from jaxtraj.design import CameraPathModel, CellLimits, design_camera_path
+
+    times = jnp.linspace(0.0, 3.0, 16)
+    pred = jnp.stack([0.2 * jnp.sin(times), 0.1 * jnp.cos(times), 0.0 * times], 1)
+    model = CameraPathModel.create(times, 10, pred[0] + jnp.array([0.0, 0.0, 0.8]))
+    limits = CellLimits(workspace_lo=(-2.0, -2.0, 0.2), workspace_hi=(2.0, 2.0, 2.0))
+    K = jnp.array([[700.0, 0, 320], [0, 700.0, 240], [0, 0, 1]])
+    base = model.fit(pred + jnp.array([0.0, 0.0, 0.8]))
+    inits = base + 0.01 * jax.random.normal(jax.random.PRNGKey(0), (5, *base.shape))
+    args = (model, K, pred, pred[None], dct_basis(times, 4), limits, inits)
+    one = design_camera_path(*args, objective="eta", max_steps=20)[1]
+    many = design_camera_path(*args, objective="eta", max_steps=20, mesh=point_mesh())[1]
+    return float(jnp.max(jnp.abs(one.theta - many.theta)))
 
 
 def make(n, dataset):

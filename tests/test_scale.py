@@ -55,6 +55,8 @@ def test_sharded_over_four_devices_equals_one_device(tmp_path):
     assert r["devices"] == 4 and r["shards"] == 4
     assert r["sharded_vs_single"] < 1e-12 and r["status_equal"]
     assert r["chunked_sharded_vs_single"] < 1e-12
+    assert r["recordings_vs_loop"] < 1e-12
+    assert r["design_vs_single"] < 1e-9
 
 
 def test_chunked_equals_one_shot(dataset, tmp_path):

@@ -130,6 +130,7 @@ def design_camera_path(
     penalty_weights: tuple[float, ...] = (1e1, 1e3, 1e5),
     max_steps: int = 300,
     rtol: float = 1e-6,
+    mesh=None,
 ) -> tuple[PathDesign, PathDesign, Array]:
     """Design a camera path from several initial guesses at once.
 
@@ -147,6 +148,8 @@ def design_camera_path(
         pixel_sigma: detection noise [px].
         penalty_weights: the penalty continuation ``mu`` per round.
         max_steps: BFGS steps per round; rtol: its tolerance.
+        mesh: a ``jax.sharding.Mesh``; the initial guesses are then split over its devices
+            (padded with copies of the last one, which are dropped).
 
     Returns:
         ``(best, all_designs, converged)``: the best feasible design (lowest expected
@@ -160,7 +163,16 @@ def design_camera_path(
         raise ValueError(f"inits: expected shape (B, {model.k}, 3), got {inits.shape}")
     f = _objective(objective, model, K, predicted, samples, basis, limits, pixel_sigma)
     mus = jnp.asarray(penalty_weights, inits.dtype)
+    n = inits.shape[0]
+    if mesh is not None:
+        from jax.sharding import NamedSharding
+        from jax.sharding import PartitionSpec as Pspec
+
+        pad = (-n) % mesh.devices.size
+        padded = jnp.concatenate([inits, jnp.repeat(inits[-1:], pad, axis=0)])
+        inits = jax.device_put(padded, NamedSharding(mesh, Pspec(mesh.axis_names[0])))
     thetas, converged = _optimise(inits, f, mus, max_steps, rtol)
+    thetas, converged = thetas[:n], converged[:n]
     designs = jax.vmap(
         lambda th: evaluate_path(
             model, th, K, predicted, samples, basis, limits, pixel_sigma=pixel_sigma

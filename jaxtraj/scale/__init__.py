@@ -9,4 +9,6 @@ from .chunked import BatchSummary as BatchSummary
 from .chunked import run_batch as run_batch
 from .chunked import write_dataset as write_dataset
 from .shard import point_mesh as point_mesh
+from .shard import reconstruct_recordings_sharded as reconstruct_recordings_sharded
 from .shard import reconstruct_sharded as reconstruct_sharded
+from .shard import shard_leading as shard_leading

@@ -20,13 +20,63 @@ from jaxtyping import ArrayLike, Float
 
 from ..solve import Reconstruction, _reconstruct_points, _validate
 
-__all__ = ["point_mesh", "reconstruct_sharded"]
+__all__ = ["point_mesh", "reconstruct_recordings_sharded", "reconstruct_sharded", "shard_leading"]
 
 
 def point_mesh(devices=None) -> Mesh:
     """A 1-D mesh with axis ``"points"`` over ``devices`` (default: all of ``jax.devices()``)."""
     devices = jax.devices() if devices is None else list(devices)
     return Mesh(np.asarray(devices), ("points",))
+
+
+def shard_leading(x, mesh: Mesh, pad_value=0.0):
+    """Put an array on ``mesh`` split along its leading axis (padded with ``pad_value``
+    rows to a multiple of the mesh size); returns ``(sharded, original_length)``."""
+    x = np.asarray(x)
+    n, d = x.shape[0], mesh.devices.size
+    pad = (-n) % d
+    if pad:
+        x = np.concatenate([x, np.full((pad, *x.shape[1:]), pad_value, x.dtype)])
+    return jax.device_put(x, NamedSharding(mesh, Pspec(mesh.axis_names[0]))), n
+
+
+def reconstruct_recordings_sharded(
+    P: Float[ArrayLike, "R F 3 4"],
+    uv: Float[ArrayLike, "R N F 2"],
+    basis: Float[ArrayLike, "F k"],
+    weights: Float[ArrayLike, "R N F"] | None = None,
+    *,
+    mesh: Mesh | None = None,
+    max_gain: float = 20.0,
+) -> Reconstruction:
+    """Many recordings (each its own cameras, same frame count) with the recording axis
+    sharded over ``mesh``; fields gain leading axes (R, N). Padded recordings (zero
+    weights) are dropped. Equals a loop of :func:`jaxtraj.reconstruct_points`."""
+    mesh = point_mesh() if mesh is None else mesh
+    P = np.asarray(P)
+    if P.ndim != 4 or P.shape[2:] != (3, 4):
+        raise ValueError(f"P: expected shape (R, F, 3, 4), got {P.shape}")
+    R, F = P.shape[:2]
+    uv = np.asarray(uv)
+    if uv.ndim != 4 or uv.shape[0] != R or uv.shape[2:] != (F, 2):
+        raise ValueError(f"uv: expected shape ({R}, N, {F}, 2), got {uv.shape}")
+    dtype = jnp.result_type(P.dtype, jnp.float32)
+    w = np.ones(uv.shape[:3], dtype) if weights is None else np.asarray(weights, dtype)
+    for r in range(R):
+        _validate(P[r], uv[r], basis, w[r], batch=(uv.shape[1],))
+    P_s, _ = shard_leading(P.astype(dtype), mesh, pad_value=1.0)
+    uv_s, _ = shard_leading(uv.astype(dtype), mesh)
+    w_s, _ = shard_leading(w, mesh)
+    B = jax.device_put(jnp.asarray(basis, dtype), NamedSharding(mesh, Pspec()))
+    res = _recordings(P_s, uv_s, B, w_s, max_gain)
+    return jax.tree_util.tree_map(lambda a: a[:R], res)
+
+
+@jax.jit
+def _recordings(P, uv, basis, w, max_gain):
+    return jax.vmap(lambda p, u, ww: _reconstruct_points(p, u, basis, ww, max_gain, 1, True, None))(
+        P, uv, w
+    )
 
 
 def reconstruct_sharded(
