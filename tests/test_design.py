@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 from jax.test_util import check_grads
 
-from jaxtraj import dct_basis, reconstruct
+from jaxtraj import dct_basis, look_at, projection_matrix, reconstruct
 from jaxtraj.design import (
     CONSTRAINTS,
     CameraPathModel,
@@ -17,6 +17,7 @@ from jaxtraj.design import (
     design_camera_path,
     evaluate_path,
     expected_error,
+    expected_error_for_cameras,
     monte_carlo_error,
     path_reconstructibility,
     plausible_trajectories,
@@ -216,3 +217,17 @@ def test_bad_input(cell):
         design_camera_path(
             c["model"], K, c["pred"], c["samples"], c["basis"], c["limits"], c["follow"]
         )
+
+
+def test_a_camera_inside_the_basis_span_has_no_useful_expected_error(cell):
+    c = cell
+    m = c["model"]
+    # the point lies in the basis span and the camera rides with it: exactly degenerate
+    pred = jnp.asarray(c["basis"]) @ (0.1 * jnp.ones((6, 3)))
+    R, t = jax.vmap(lambda x: look_at(x + OFFSET, x, (0.0, 1.0, 0.0)))(pred)
+    P = jax.vmap(lambda RR, tt: projection_matrix(K, RR, tt))(R, t)
+    e = float(expected_error_for_cameras(P, pred[None], c["basis"]))
+    assert not np.isnan(e) and e > 1.0  # +inf when the solve is exactly singular
+    theta = c["wiggle"]
+    with pytest.raises(ValueError, match="2F >= 3k"):
+        expected_error(m, theta, K, pred, pred[None], dct_basis(c["times"], 17))

@@ -85,8 +85,18 @@ def expected_error_for_cameras(
     """:func:`expected_error` for given cameras (F, 3, 4), e.g. a heuristic path."""
     P = jnp.asarray(P)
     basis = jnp.asarray(basis, P.dtype)
+    _check_counts(P.shape[0], basis.shape[-1])
     mse = jax.vmap(lambda x: _one_error(P, x, basis, pixel_sigma))(jnp.asarray(samples, P.dtype))
-    return jnp.sqrt(jnp.mean(mse))
+    # an exactly degenerate path (e.g. a camera riding with the workpiece) has no finite
+    # error: report +inf rather than the NaN of the singular solve
+    return jnp.sqrt(jnp.where(jnp.isnan(jnp.mean(mse)), jnp.inf, jnp.mean(mse)))
+
+
+def _check_counts(F: int, k: int) -> None:
+    if 2 * F < 3 * k:
+        raise ValueError(
+            f"basis: {k} vectors need at least {-(-3 * k // 2)} images (2F >= 3k), got F = {F}"
+        )
 
 
 def path_reconstructibility(

@@ -34,7 +34,7 @@ class PathDesign(eqx.Module):
         violation: (C,) largest normalised constraint value per constraint, in the order
             of :data:`~jaxtraj.design.constraints.CONSTRAINTS` (<= 0: satisfied).
         active: (C,) constraints within ``active_tol`` of their limit.
-        feasible: every violation <= ``feasible_tol``.
+        feasible: every violation <= ``feasible_tol`` and a finite expected error.
         peak_velocity [m/s], peak_acceleration [m/s^2]: on the limit grid.
     """
 
@@ -76,13 +76,14 @@ def evaluate_path(
     theta = jnp.asarray(theta)
     values = constraint_values(model, theta, limits, predicted, samples)
     viol = jnp.stack([jnp.max(values[name]) for name in CONSTRAINTS])
+    error = expected_error(model, theta, K, predicted, samples, basis, pixel_sigma)
     return PathDesign(
         theta=theta,
-        expected_error=expected_error(model, theta, K, predicted, samples, basis, pixel_sigma),
+        expected_error=error,
         eta=path_reconstructibility(model, theta, samples, basis),
         violation=viol,
         active=jnp.abs(viol) <= active_tol,
-        feasible=jnp.all(viol <= feasible_tol),
+        feasible=jnp.all(viol <= feasible_tol) & jnp.isfinite(error),
         peak_velocity=jnp.max(jnp.linalg.norm(model.velocity(theta), axis=1)),
         peak_acceleration=jnp.max(jnp.linalg.norm(model.acceleration(theta), axis=1)),
     )
@@ -179,7 +180,8 @@ def design_camera_path(
         )
     )(thetas)
     worst = jnp.max(designs.violation, axis=1)
-    score = jnp.where(designs.feasible, designs.expected_error, jnp.inf)
+    worst = jnp.where(jnp.isfinite(designs.expected_error), worst, jnp.inf)
+    score = jnp.where(designs.feasible, designs.expected_error, jnp.inf)  # feasible: finite
     i = jnp.where(jnp.any(designs.feasible), jnp.argmin(score), jnp.argmin(worst))
     best = jax.tree_util.tree_map(lambda a: a[i], designs)
     return best, designs, converged
