@@ -89,15 +89,26 @@ def evaluate_path(
     )
 
 
-def _objective(kind, model, K, predicted, samples, basis, limits, pixel_sigma):
-    def f(theta, mu):
-        if kind == "error":
-            main = jnp.log(expected_error(model, theta, K, predicted, samples, basis, pixel_sigma))
-        else:
-            main = -jnp.log(path_reconstructibility(model, theta, samples, basis))
-        return main + mu * penalty(constraint_values(model, theta, limits, predicted, samples))
+class _Objective(eqx.Module):
+    """``f(theta, mu)``: the objective plus ``mu`` times the constraint penalty. A pytree,
+    so that :func:`_optimise` compiles once per problem shape, not once per call."""
 
-    return f
+    kind: str = eqx.field(static=True)
+    model: CameraPathModel
+    K: Array
+    predicted: Array
+    samples: Array
+    basis: Array
+    limits: CellLimits
+    pixel_sigma: Array
+
+    def __call__(self, theta, mu):
+        m, K, x, S, B = self.model, self.K, self.predicted, self.samples, self.basis
+        if self.kind == "error":
+            main = jnp.log(expected_error(m, theta, K, x, S, B, self.pixel_sigma))
+        else:
+            main = -jnp.log(path_reconstructibility(m, theta, S, B))
+        return main + mu * penalty(constraint_values(m, theta, self.limits, x, S))
 
 
 @eqx.filter_jit
@@ -115,6 +126,15 @@ def _optimise(theta0, f, mus, max_steps, rtol):
         return theta, jnp.all(ok)
 
     return jax.vmap(one)(theta0)
+
+
+@eqx.filter_jit
+def _evaluate_many(thetas, f: _Objective):
+    return jax.vmap(
+        lambda th: evaluate_path(
+            f.model, th, f.K, f.predicted, f.samples, f.basis, f.limits, pixel_sigma=f.pixel_sigma
+        )
+    )(thetas)
 
 
 def design_camera_path(
@@ -162,7 +182,17 @@ def design_camera_path(
     inits = jnp.asarray(inits)
     if inits.ndim != 3 or inits.shape[1:] != (model.k, 3):
         raise ValueError(f"inits: expected shape (B, {model.k}, 3), got {inits.shape}")
-    f = _objective(objective, model, K, predicted, samples, basis, limits, pixel_sigma)
+    dtype = inits.dtype
+    f = _Objective(
+        objective,
+        model,
+        jnp.asarray(K, dtype),
+        jnp.asarray(predicted, dtype),
+        jnp.asarray(samples, dtype),
+        jnp.asarray(basis, dtype),
+        limits,
+        jnp.asarray(pixel_sigma, dtype),
+    )
     mus = jnp.asarray(penalty_weights, inits.dtype)
     n = inits.shape[0]
     if mesh is not None:
@@ -174,11 +204,7 @@ def design_camera_path(
         inits = jax.device_put(padded, NamedSharding(mesh, Pspec(mesh.axis_names[0])))
     thetas, converged = _optimise(inits, f, mus, max_steps, rtol)
     thetas, converged = thetas[:n], converged[:n]
-    designs = jax.vmap(
-        lambda th: evaluate_path(
-            model, th, K, predicted, samples, basis, limits, pixel_sigma=pixel_sigma
-        )
-    )(thetas)
+    designs = _evaluate_many(thetas, f)
     worst = jnp.max(designs.violation, axis=1)
     worst = jnp.where(jnp.isfinite(designs.expected_error), worst, jnp.inf)
     score = jnp.where(designs.feasible, designs.expected_error, jnp.inf)  # feasible: finite
