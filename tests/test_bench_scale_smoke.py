@@ -84,7 +84,7 @@ def test_tiny_benchmark_agrees_across_devices_and_chunks(tmp_path):
         assert m["max_diff_m"] < 1e-12 and m["ok"] == 200
         assert m["peak_mib"] >= m["peak_chunked_mib"] > 0
     for n, m in raw["memory"].items():
-        assert m["computed"] == -(-n // 64) and m["peak_mib"] > m["before_mib"] > 0
+        assert m["computed"] == -(-n // 64) and m["peak_mib"] >= m["before_mib"] > 0
         assert m["tracks_bytes"] == 128 + n * 20 * 2 * 8
         extra = m["output_bytes"] - bench_scale.output_bytes(n, 20, 3)
         assert 0 < extra <= 5 * 256  # five .npy headers
