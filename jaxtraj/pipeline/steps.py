@@ -236,7 +236,7 @@ def step_reconstruct(
         "frames_with_pose": int(meas.pose_ok.sum()),
         "pose_method": pose_method,
         "track_method": track_method,
-        "k": k if "dct" in (track_method,) or pose_method == "joint" else None,
+        "k": k if track_method == "dct" or pose_method == "joint" else None,
         "detections_per_frame": {"mean": float(detected.mean()), "min": int(detected.min())},
         "pose_reprojection_rms_px": {
             "mean": float(np.nanmean(meas.pose_rms_px)),

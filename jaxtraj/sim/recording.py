@@ -11,7 +11,6 @@ calibration images show a chessboard lying on the table. The folder follows
 from __future__ import annotations
 
 from collections.abc import Callable, Iterable
-from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -20,7 +19,7 @@ from ..io.formats import ImuNoise, ImuSamples, RecordingMeta, RobotNoise
 from ..io.recording import Recording, Truth, write_recording_files
 from ..io.records import CameraCalibration, ObjectModel, PoseStream, quat_to_matrix
 from ..io.tables import atomic_folder
-from .cell import SimulatedCell, pose_matrix
+from .cell import SimulatedCell, _pose_stream, _rot, pose_matrix
 from .render import PlanarTexture, chessboard_texture, marker_board, render
 
 __all__ = ["CALIBRATION_TARGET", "workpiece", "write_simulated_recording"]
@@ -169,12 +168,8 @@ _IMU_FIELDS = ("accel_noise_density", "gyro_noise_density", "accel_random_walk",
 
 def _noisy(poses: PoseStream, noise, rng: np.random.Generator) -> PoseStream:
     """Flange poses as the controller reports them: position and orientation noise."""
-    from .cell import _rot
-
     n = len(poses.times)
     R = quat_to_matrix(poses.q)
     dR = np.stack([_rot(v) for v in rng.normal(0, float(noise.orientation), (n, 3))])
     T = pose_matrix(R @ dR, poses.p + rng.normal(0, float(noise.position), (n, 3)))
-    from .cell import _pose_stream
-
-    return replace(_pose_stream(poses.times, T))
+    return _pose_stream(poses.times, T)
