@@ -23,17 +23,13 @@ import numpy as np
 
 from .analysis import reconstructibility
 from .basis import DCTBasis
+from .pipeline.evaluate import rotation_error_deg
 from .rigid import fit_rigid
 from .solve import Status, reconstruct_points
 
 #: Default number of DCT vectors for 150 images over 10 s (the noise floor is reached at
 #: about k = 20-25 on the simulated cell; see README, "Choosing k").
 DEFAULT_K = 20
-
-
-def _rotation_angle_deg(R_a, R_b):
-    cos = (np.trace(np.swapaxes(R_a, -1, -2) @ R_b, axis1=-2, axis2=-1) - 1.0) / 2.0
-    return np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))
 
 
 def _cast(tree, dtype):
@@ -125,7 +121,7 @@ def run_demo(args: Namespace) -> int:
     pts = jnp.swapaxes(marker_points, 0, 1)  # (F, M, 3)
     R_hat, p_hat = fit_rigid(rigid.model_points, pts)
     pos_err = np.linalg.norm(np.asarray(p_hat - rigid.p_w_o), axis=1) * 1e3
-    ang_err = _rotation_angle_deg(np.asarray(R_hat), np.asarray(rigid.R_w_o))
+    ang_err = rotation_error_deg(np.asarray(R_hat), np.asarray(rigid.R_w_o))
     elapsed = time.perf_counter() - t_start
 
     ok = ok_point and bool(np.all(np.asarray(ok_markers)))

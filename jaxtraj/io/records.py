@@ -11,7 +11,14 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-__all__ = ["CameraCalibration", "Detections", "ObjectModel", "PoseStream", "quat_to_matrix"]
+__all__ = [
+    "CameraCalibration",
+    "Detections",
+    "ObjectModel",
+    "PoseStream",
+    "matrix_to_quat",
+    "quat_to_matrix",
+]
 
 
 def quat_to_matrix(q) -> np.ndarray:
@@ -27,6 +34,15 @@ def quat_to_matrix(q) -> np.ndarray:
         ],
         -2,
     )
+
+
+def matrix_to_quat(R) -> np.ndarray:
+    """(N, 4) quaternions (w, x, y, z) of (N, 3, 3) rotation matrices (jaxlie's conversion)."""
+    import jax
+    import jax.numpy as jnp
+    import jaxlie
+
+    return np.asarray(jax.vmap(lambda r: jaxlie.SO3.from_matrix(r).wxyz)(jnp.asarray(R)))
 
 
 def _array(name: str, value, shape: tuple, dtype=np.float64) -> np.ndarray:

@@ -10,7 +10,6 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-import jax
 import jax.numpy as jnp
 import jaxlie
 import numpy as np
@@ -21,7 +20,7 @@ from ..fusion.imu import ImuNoise
 from ..fusion.interpolate import camera_poses_at
 from ..fusion.latency import estimate_latency
 from ..fusion.smoother import rts_smoother
-from ..io.records import PoseStream
+from ..io.records import PoseStream, matrix_to_quat
 
 __all__ = ["FusedCameraPath", "fuse_camera_path"]
 
@@ -127,7 +126,7 @@ def fuse_camera_path(
     var = var[order]
     R_w_c = np.swapaxes(R_c_w, -1, -2)
     p_w_c = -np.einsum("fij,fj->fi", R_w_c, t_c_w)
-    q_w_c = _quats(R_w_c)
+    q_w_c = matrix_to_quat(R_w_c)
     return FusedCameraPath(
         times=image_times,
         R_c_w=R_c_w,
@@ -141,8 +140,3 @@ def fuse_camera_path(
         num_imu=int(imu_t.shape[0]),
         num_robot=int(robot.times.shape[0]),
     )
-
-
-def _quats(R: np.ndarray) -> np.ndarray:
-    """(F, 4) quaternions (w, x, y, z) of (F, 3, 3) rotations."""
-    return np.asarray(jax.vmap(lambda r: jaxlie.SO3.from_matrix(r).wxyz)(jnp.asarray(R)))

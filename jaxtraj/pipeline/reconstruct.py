@@ -21,12 +21,18 @@ from dataclasses import dataclass, field
 
 import jax
 import jax.numpy as jnp
-import jaxlie
 import numpy as np
 
 from ..basis import DCTBasis
 from ..camera import undistort_points
-from ..io.records import CameraCalibration, Detections, ObjectModel, PoseStream
+from ..io.records import (
+    CameraCalibration,
+    Detections,
+    ObjectModel,
+    PoseStream,
+    matrix_to_quat,
+    quat_to_matrix,
+)
 
 __all__ = ["POSE_METHODS", "TRACK_METHODS", "Measurement", "reconstruct_recording"]
 
@@ -77,14 +83,6 @@ class Measurement:
     skipped: list = field(default_factory=list)
     pose_method: str = "pnp"
     track_method: str = "smoother"
-
-
-def _rotation_to_quat(R: np.ndarray) -> np.ndarray:
-    return np.asarray(jax.vmap(lambda r: jaxlie.SO3.from_matrix(r).wxyz)(jnp.asarray(R)))
-
-
-def _quat_matrices(q: np.ndarray) -> np.ndarray:
-    return np.asarray(jax.vmap(lambda qq: jaxlie.SO3(qq).as_matrix())(jnp.asarray(q)))
 
 
 def _pnp(model: np.ndarray, uv: np.ndarray, K: np.ndarray):
@@ -158,7 +156,7 @@ def reconstruct_recording(
     rms = np.full(F, np.nan)
     ok = np.zeros(F, bool)
     skipped = []
-    R_w_c = _quat_matrices(cameras.q)
+    R_w_c = quat_to_matrix(cameras.q)
     R_c_w = np.swapaxes(R_w_c, -1, -2)
     t_c_w = -np.einsum("fij,fj->fi", R_c_w, cameras.p)
     for f in range(F):
@@ -208,7 +206,7 @@ def reconstruct_recording(
         track_points, track_ok, track_rms, track_std = _tracks(
             track_method, P, uv, detections.times, weights, k, pixel_sigma
         )
-    pose = PoseStream(detections.times, t_w_o, _rotation_to_quat(R_w_o))
+    pose = PoseStream(detections.times, t_w_o, matrix_to_quat(R_w_o))
     return Measurement(
         times=detections.times,
         frames=detections.frames,

@@ -26,7 +26,7 @@ from ..camera import look_at
 from ..fusion.events import RobotNoise
 from ..fusion.imu import ImuNoise
 from ..fusion.simulate import imu_trajectory, simulate_recording
-from ..io.records import PoseStream
+from ..io.records import PoseStream, matrix_to_quat
 from .trajectories import rigid_motion, sample_times
 
 __all__ = ["CellConfig", "SimulatedCell", "pose_matrix", "simulate_cell"]
@@ -203,8 +203,7 @@ def _calibration_views(config: CellConfig, rng: np.random.Generator):
 
 
 def _pose_stream(times, T) -> PoseStream:
-    q = np.asarray(jax.vmap(lambda R: jaxlie.SO3.from_matrix(R).wxyz)(jnp.asarray(T[:, :3, :3])))
-    return PoseStream(times, T[:, :3, 3], q)
+    return PoseStream(times, T[:, :3, 3], matrix_to_quat(T[:, :3, :3]))
 
 
 def simulate_cell(config: CellConfig | None = None, seed: int = 0) -> SimulatedCell:
@@ -252,7 +251,7 @@ def simulate_cell(config: CellConfig | None = None, seed: int = 0) -> SimulatedC
         object_pose = PoseStream(
             times_np,
             np.asarray(p_w_o),
-            np.asarray(jax.vmap(lambda R: jaxlie.SO3.from_matrix(R).wxyz)(R_w_o)),
+            matrix_to_quat(R_w_o),
         )
         camera_pose = PoseStream(times_np, np.asarray(p_w_c), np.asarray(q_w_c))
         robot = PoseStream(
