@@ -10,12 +10,13 @@ root trajectories, four camera paths watch the workpiece:
   no robot can drive it;
 * ``orbit`` - the camera circles the moving workpiece point (0.6 m out, 0.6 m above: a
   0.85 m stand-off) at 0.5 m/s relative to it, looking at it;
-* ``optimised`` - :func:`jaxtraj.design.design_camera_path` (expected-error objective, the
-  robot limits as penalties) from several initial guesses: the follower fitted into the
+* ``optimised`` - :func:`jaxtraj.design.design_camera_path` (expected mean-error objective,
+  the robot limits as penalties) from several initial guesses: the follower fitted into the
   path model plus copies with random high-order coefficients.
 
 Per path it reports eta, the expected RMS error (:func:`expected_error_for_cameras`), the
-simulated mean error over many noise draws (:func:`monte_carlo_error`), the peak speed and
+expected mean Euclidean error (the same with ``metric="mean"``), the simulated mean
+error over many noise draws (:func:`monte_carlo_error`), the peak speed and
 acceleration (model paths: on the model's fine limit grid; heuristic paths: by finite
 differences at the image times, :func:`sampled_limits`) and the robot limits each path
 violates. The design is timed (wall seconds of the first call, compilation included).
@@ -75,10 +76,12 @@ from jaxtraj.sim import (  # noqa: E402
 )
 
 PATHS = ("follower", "random discontinuous", "orbit", "optimised")
+_OBJECTIVE_WORDS = {"error": "RMS error", "mean_error": "mean error", "eta": "RMS error"}
 HEADER = (
     "camera path",
     "eta",
-    "expected error [mm]",
+    "expected RMS error [mm]",
+    "expected mean error [mm]",
     "simulated mean error [mm]",
     "peak v [m/s]",
     "peak a [m/s^2]",
@@ -106,8 +109,13 @@ class Config:
     n_samples: int = 3
     sample_extent: float = 0.03
     draws: int = 200
-    max_steps: int = 500
-    perturbed: int = 3
+    # 500 steps and 4 guesses with the RMS objective missed the target on mocap 131_01
+    # (42.3 vs 40.0 mm); 12 guesses still missed it (40.8 mm)
+    max_steps: int = 1500
+    # what the design minimises: "mean_error" matches the simulated mean Euclidean error
+    # that the verdict compares (and the paper reports); "error" is the RMS
+    objective: str = "mean_error"
+    perturbed: int = 7
     perturb_scale: float = 0.01
     perturb_from: int = 6
     curve_extent: float = 0.4
@@ -140,6 +148,7 @@ class PathRow:
     name: str
     eta: float
     expected_error: float
+    expected_mean_error: float
     mc_error: float
     peak_velocity: float
     peak_acceleration: float
@@ -156,6 +165,7 @@ class PathRow:
             self.name,
             f"{self.eta:.3g}",
             f"{1e3 * self.expected_error:.4g}",
+            f"{1e3 * self.expected_mean_error:.4g}",
             f"{1e3 * self.mc_error:.4g}",
             f"{self.peak_velocity:.3g}",
             f"{self.peak_acceleration:.3g}",
@@ -172,7 +182,7 @@ class SceneResult:
     description: str
     rows: tuple[PathRow, ...]
     design_seconds: float
-    per_init: tuple[tuple[float, bool, bool], ...]  # expected error [m], feasible, converged
+    per_init: tuple[tuple[float, bool, bool], ...]  # objective [m], feasible, converged
     best_active: tuple[str, ...]
 
     def row(self, name: str) -> PathRow:
@@ -305,6 +315,9 @@ def heuristic_row(name, path, K, times, predicted, samples, basis, limits, cfg, 
         name=name,
         eta=geometric_eta(path.centres, samples, basis),
         expected_error=float(expected_error_for_cameras(P, samples, basis, cfg.pixel_sigma)),
+        expected_mean_error=float(
+            expected_error_for_cameras(P, samples, basis, cfg.pixel_sigma, "mean")
+        ),
         mc_error=float(monte_carlo_error(key, P, samples, basis, cfg.pixel_sigma, cfg.draws)),
         peak_velocity=float(v),
         peak_acceleration=float(a),
@@ -321,15 +334,22 @@ def initial_guesses(model: CameraPathModel, predicted, cfg: Config, key) -> jnp.
     return jnp.concatenate([follow[None], follow + cfg.perturb_scale * noise * mask])
 
 
-def pick_best(designs):
-    """The feasible design with the lowest finite expected error (else the least infeasible).
+def _objective_values(designs, objective: str):
+    """The expected error the design minimised (RMS, or mean for ``"mean_error"``)."""
+    if objective == "mean_error":
+        return np.asarray(designs.expected_mean_error)
+    return np.asarray(designs.expected_error)
+
+
+def pick_best(designs, objective: str = "error"):
+    """The feasible design with the lowest finite objective (else the least infeasible).
 
     ``design_camera_path`` picks its ``best`` with ``argmin`` over the expected errors,
     which returns a NaN entry when an initial guess is exactly degenerate (e.g. the fitted
     follower when the camera model can follow the workpiece exactly), so the benchmark
     chooses again from all designs.
     """
-    err = np.asarray(designs.expected_error)
+    err = _objective_values(designs, objective)
     ok = np.asarray(designs.feasible) & np.isfinite(err)
     if ok.any():
         i = int(np.argmin(np.where(ok, err, np.inf)))
@@ -370,12 +390,13 @@ def run_scene(name, description, times, predicted, cfg: Config, key, log) -> Sce
         limits,
         inits,
         pixel_sigma=cfg.pixel_sigma,
+        objective=cfg.objective,
         max_steps=cfg.max_steps,
     )
     jax.block_until_ready((designs, converged))
     seconds = time.perf_counter() - t0
     log(f"{name}: design took {seconds:.1f} s")
-    best = pick_best(designs)
+    best = pick_best(designs, cfg.objective)
     P = model.projection_matrices(best.theta, K, pred)
     violated = tuple(n for i, n in enumerate(CONSTRAINTS) if float(best.violation[i]) > 1e-3)
     rows.append(
@@ -383,6 +404,7 @@ def run_scene(name, description, times, predicted, cfg: Config, key, log) -> Sce
             name="optimised",
             eta=float(best.eta),
             expected_error=float(best.expected_error),
+            expected_mean_error=float(best.expected_mean_error),
             mc_error=float(
                 monte_carlo_error(mc_keys[-1], P, samples, basis, cfg.pixel_sigma, cfg.draws)
             ),
@@ -394,7 +416,9 @@ def run_scene(name, description, times, predicted, cfg: Config, key, log) -> Sce
     )
     per_init = tuple(
         (float(e), bool(f), bool(c))
-        for e, f, c in zip(designs.expected_error, designs.feasible, converged, strict=True)
+        for e, f, c in zip(
+            _objective_values(designs, cfg.objective), designs.feasible, converged, strict=True
+        )
     )
     active = tuple(n for i, n in enumerate(CONSTRAINTS) if bool(best.active[i]))
     return SceneResult(name, description, tuple(rows), seconds, per_init, active)
@@ -419,7 +443,8 @@ def scene_markdown(res: SceneResult, cfg: Config) -> str:
             "",
             f"Design: {len(res.per_init)} initial guesses (#0: the fitted follower), "
             f"{res.design_seconds:.1f} s wall (first call, compilation included). Expected "
-            f"error per initial guess: {inits}. Active constraints of the best: "
+            f"{_OBJECTIVE_WORDS[cfg.objective]} per initial guess: {inits}. Active "
+            "constraints of the best: "
             f"{', '.join(res.best_active) or 'none'}.",
             "",
             res.verdict(),
@@ -438,7 +463,8 @@ def settings_markdown(cfg: Config) -> str:
         f"predicted point (tolerance {cfg.end_tolerance} m). Samples: the prediction plus "
         f"{cfg.n_samples} smooth deviations of {1e3 * cfg.sample_extent:g} mm "
         f"(`plausible_trajectories`). Simulated error: {cfg.draws} noise draws per sample "
-        f"(`monte_carlo_error`). Optimiser: {cfg.max_steps} BFGS steps per penalty round, "
+        f"(`monte_carlo_error`). Optimiser: objective `{cfg.objective}`, "
+        f"{cfg.max_steps} BFGS steps per penalty round, "
         f"{1 + cfg.perturbed} initial guesses (perturbation {cfg.perturb_scale} on camera "
         f"coefficients >= {cfg.perturb_from}). Heuristic paths: follower "
         f"{cfg.offset[2]} m above the point; random discontinuous stand-off "

@@ -46,7 +46,8 @@ def test_design_benchmark_table():
         row = res.row(name)
         numbers = [row.eta, row.mc_error, row.peak_velocity, row.peak_acceleration]
         if name != "follower":  # the follower is exactly degenerate: its E may be singular
-            numbers.append(row.expected_error)
+            numbers += [row.expected_error, row.expected_mean_error]
+            assert row.expected_mean_error <= row.expected_error * (1 + 1e-12)  # Jensen
         assert all(math.isfinite(x) and x > 0 for x in numbers), (name, numbers)
     follower, random = res.row("follower"), res.row("random discontinuous")
     optimised = res.row("optimised")
