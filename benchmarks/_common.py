@@ -9,10 +9,13 @@ back as NumPy float64 and a float32 run casts them.
 
 from __future__ import annotations
 
+import argparse
 import dataclasses
+import faulthandler
 import os
 import platform
 import statistics
+import sys
 import time
 from collections.abc import Callable, Sequence
 
@@ -64,6 +67,32 @@ class Timing:
     def spread(self) -> tuple[float, float]:
         """(min, max) of the warm runs."""
         return min(self.runs), max(self.runs)
+
+
+def add_watchdog_option(parser: argparse.ArgumentParser, default: float = 1800.0) -> None:
+    """``--watchdog SECONDS``: see :func:`start_watchdog`."""
+    parser.add_argument(
+        "--watchdog",
+        type=float,
+        default=default,
+        help="abort with Python stack traces after this many seconds (0 disables)",
+    )
+
+
+def start_watchdog(seconds: float) -> None:
+    """Stop a hung run with Python tracebacks after ``seconds`` (0: never); a benchmark
+    cancels it with ``faulthandler.cancel_dump_traceback_later()`` when it is done."""
+    if seconds > 0:
+        faulthandler.dump_traceback_later(seconds, exit=True)
+
+
+def stderr_logger(name: str) -> Callable[[str], None]:
+    """A progress logger that prints ``[name] message`` to stderr at once."""
+
+    def log(msg: str) -> None:
+        print(f"[{name}] {msg}", file=sys.stderr, flush=True)
+
+    return log
 
 
 def block(x):

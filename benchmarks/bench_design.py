@@ -50,7 +50,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from _common import machine_info, markdown_table  # noqa: E402
+from _common import machine_info, markdown_table, stderr_logger  # noqa: E402
 
 from jaxtraj import dct_basis  # noqa: E402
 from jaxtraj.analysis import reconstructibility  # noqa: E402
@@ -503,8 +503,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--out", type=Path, default=None, help="write the markdown report here")
     args = parser.parse_args(argv)
 
-    def log(msg: str) -> None:
-        print(f"[bench_design] {msg}", file=sys.stderr, flush=True)
+    log = stderr_logger("bench_design")
 
     started = datetime.datetime.now()
     machine = machine_info()

@@ -44,7 +44,14 @@ import numpy as np  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from _common import block, machine_info, markdown_table  # noqa: E402
+from _common import (  # noqa: E402
+    add_watchdog_option,
+    block,
+    machine_info,
+    markdown_table,
+    start_watchdog,
+    stderr_logger,
+)
 
 from jaxtraj.basis import dct_basis  # noqa: E402
 from jaxtraj.scale import point_mesh, reconstruct_sharded, run_batch, write_dataset  # noqa: E402
@@ -583,21 +590,13 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--out", type=Path, default=None, help="write the markdown report here")
     parser.add_argument("--workdir", type=Path, default=None, help="scratch folder (deleted)")
     parser.add_argument("--worker", default=None, help=argparse.SUPPRESS)
-    parser.add_argument(
-        "--watchdog",
-        type=float,
-        default=1800.0,
-        help="abort with Python stack traces after this many seconds (0 disables)",
-    )
+    add_watchdog_option(parser)
     args = parser.parse_args(argv)
     if args.worker is not None:
         _worker_main(args.worker)
         return 0
-    if args.watchdog > 0:
-        faulthandler.dump_traceback_later(args.watchdog, exit=True)
-
-    def log(msg: str) -> None:
-        print(f"[bench_scale] {msg}", file=sys.stderr, flush=True)
+    start_watchdog(args.watchdog)
+    log = stderr_logger("bench_scale")
 
     command = "python benchmarks/bench_scale.py" + (" --quick" if args.quick else "")
     if args.out is not None:

@@ -45,6 +45,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _common import (  # noqa: E402
     DenseRun,
     Scene,
+    add_watchdog_option,
     block,
     compiled_memory,
     dense_breakdown,
@@ -57,6 +58,8 @@ from _common import (  # noqa: E402
     markdown_table,
     relative_difference,
     run_dense,
+    start_watchdog,
+    stderr_logger,
     time_call,
 )
 
@@ -442,21 +445,13 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--quick", action="store_true", help="small sizes: a smoke run")
     parser.add_argument("--out", type=Path, default=None, help="write the markdown report here")
     parser.add_argument("--dense-child", default=None, help=argparse.SUPPRESS)
-    parser.add_argument(
-        "--watchdog",
-        type=float,
-        default=1800.0,
-        help="abort with Python stack traces after this many seconds (0 disables)",
-    )
+    add_watchdog_option(parser)
     args = parser.parse_args(argv)
     if args.dense_child is not None:
         _dense_child(args.dense_child)
         return 0
-    if args.watchdog > 0:
-        faulthandler.dump_traceback_later(args.watchdog, exit=True)
-
-    def log(msg: str) -> None:
-        print(f"[bench_solve] {msg}", file=sys.stderr, flush=True)
+    start_watchdog(args.watchdog)
+    log = stderr_logger("bench_solve")
 
     report = run_all(QUICK if args.quick else FULL, log)
     print(report)
