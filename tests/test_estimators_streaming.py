@@ -87,12 +87,21 @@ def test_missing_frames_jit_and_vmap(scene, rng):
     b = jax.jit(stream_update)(st0, s["P"][0], s["uv"][0], s["times"][0])
     np.testing.assert_allclose(np.asarray(a.N), np.asarray(b.N), rtol=1e-13)
     uvs = np.stack([s["uv"], s["uv"] + rng.normal(size=(F, 2))])
-    run = jax.vmap(
-        lambda u: stream_run(stream_init(basis, 30), s["P"], u, s["times"])[1].position[-1]
+    # A 30-frame window on a basis spanning 90 frames leaves directions of the coefficients
+    # undetermined (scaled condition number ~1e18). The estimate's ridge keeps it a
+    # continuous function of the data: the batched program (different rounding) agrees
+    # with the single run (without the ridge they differed by 1e-5 m) and is accurate.
+    run = jax.jit(
+        jax.vmap(
+            lambda u: stream_run(stream_init(basis, 30), s["P"], u, s["times"])[1].position[-1]
+        )
     )
     batch = np.asarray(run(uvs))
     one = stream_run(stream_init(basis, 30), s["P"], uvs[1], s["times"])[1].position[-1]
-    np.testing.assert_allclose(batch[1], np.asarray(one), atol=1e-12)
+    np.testing.assert_allclose(batch[1], np.asarray(one), atol=1e-10)
+    # last-frame error ~1-6 mm over seeds (the 90-frame window's: 3-13 mm); a solution
+    # moved along the undetermined directions would be off by centimetres or more
+    assert np.linalg.norm(batch[0] - s["X"][-1]) < 0.01
 
 
 def test_gradient_through_stream(scene):
