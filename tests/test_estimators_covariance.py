@@ -89,15 +89,17 @@ def test_jit_vmap_and_weights(scene, rng):
     np.testing.assert_allclose(np.asarray(jitted.coeffs), np.asarray(eager.coeffs), rtol=1e-10)
     uvs = np.stack([s["uv"], s["uv"] + 0.3])
     cs = jt.reconstruct_points(s["P"], uvs, s["basis"]).coeffs
-    batch = jax.vmap(lambda u, c: dct_covariance(s["P"], u, s["basis"], c, pixel_sigma=0.5))(
-        uvs, cs
-    )
+    batch = jax.jit(
+        jax.vmap(lambda u, c: dct_covariance(s["P"], u, s["basis"], c, pixel_sigma=0.5))
+    )(uvs, cs)
     one = dct_covariance(s["P"], uvs[1], s["basis"], cs[1], pixel_sigma=0.5)
     np.testing.assert_allclose(np.asarray(batch.points[1]), np.asarray(one.points), rtol=1e-10)
     # differentiable: d trace / d sigma = 2 trace / sigma
-    g = jax.grad(
-        lambda sg: jnp.trace(
-            dct_covariance(s["P"], s["uv"], s["basis"], cs[0], pixel_sigma=sg).coeffs
+    g = jax.jit(
+        jax.grad(
+            lambda sg: jnp.trace(
+                dct_covariance(s["P"], s["uv"], s["basis"], cs[0], pixel_sigma=sg).coeffs
+            )
         )
     )(0.5)
     tr = float(

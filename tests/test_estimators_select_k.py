@@ -18,6 +18,8 @@ KS = (4, 6, 8, 10, 12, 14, 16)
 CV = jax.jit(lambda P, uv, t: select_k_cv(P, uv, t, KS))
 GAIN = jax.jit(lambda P, uv, t: select_k_gain(P, uv, t, KS, max_gain=3.0))
 DCT = jax.jit(lambda P, uv, b: jt.reconstruct_points(P, uv[None], b).points[0], static_argnums=())
+# the solver's conditioning gain, compiled (run eagerly, every k costs ~70 small compilations)
+SOLVER_GAIN = jax.jit(lambda P, uv, b: jt.reconstruct(P, uv, b).gain)
 
 
 def test_masked_solve_equals_k_column_fit(rng):
@@ -35,7 +37,7 @@ def test_gains_equal_solver_gain(rng):
     s = robot_scene(rng, F=F, mode="smooth", noise=0.4)
     sel = GAIN(s["P"], s["uv"], s["times"])
     for i, k in enumerate(KS[:3]):
-        g = jt.reconstruct(s["P"], s["uv"], jt.dct_basis(s["times"], k)).gain
+        g = SOLVER_GAIN(s["P"], s["uv"], jt.dct_basis(s["times"], k))
         assert float(sel.gain[i]) == pytest.approx(float(g), rel=1e-6)
     ok = np.asarray(sel.gain) <= 3.0
     expected = max([k for k, o in zip(KS, ok, strict=True) if o], default=0)
@@ -58,7 +60,7 @@ def test_cv_choice_near_error_optimal_k():
 def test_vmap_equals_loop_and_degenerate_camera(rng):
     s = robot_scene(rng, F=F, mode="random", noise=0.3)
     uvs = np.stack([s["uv"], s["uv"] + rng.normal(size=(F, 2)) * 0.3])
-    batch = jax.vmap(lambda u: select_k_cv(s["P"], u, s["times"], KS))(uvs)
+    batch = jax.jit(jax.vmap(lambda u: select_k_cv(s["P"], u, s["times"], KS)))(uvs)
     one = CV(s["P"], uvs[1], s["times"])
     np.testing.assert_allclose(np.asarray(batch.score[1]), np.asarray(one.score), rtol=1e-9)
     assert int(batch.k[1]) == int(one.k)

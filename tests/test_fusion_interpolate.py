@@ -73,7 +73,7 @@ def test_interpolation_jit_vmap_grad():
     f = lambda ts: interpolate_poses(t_known, *known, ts)[0]  # noqa: E731
     loop = jnp.stack([f(ts) for ts in times])
     np.testing.assert_allclose(jax.jit(jax.vmap(f))(times), loop, atol=1e-14)
-    check_grads(f, (times[0],), order=1, modes=("rev",))
+    check_grads(jax.jit(f), (times[0],), order=1, modes=("rev",))
     # the time derivative on a screw motion is its velocity
     v = jax.jacfwd(lambda s: f(jnp.array([s]))[0])(0.4)
     v_ref = jax.jacfwd(lambda s: _screw(jnp.array([s]))[0][0])(0.4)

@@ -157,7 +157,7 @@ def test_smooth_curve_jit_vmap_seeds():
 def test_smooth_curve_gradient():
     times = _times()
     check_grads(
-        lambda c, e: smooth_random_curve(KEY, times, centre=c, extent=e),
+        jax.jit(lambda c, e: smooth_random_curve(KEY, times, centre=c, extent=e)),
         (jnp.array([0.1, 0.2, 0.3]), jnp.asarray(0.3)),
         order=1,
     )
@@ -196,7 +196,7 @@ def test_rigid_motion_and_transform_points():
     np.testing.assert_allclose(R_fit, R, atol=1e-10)
     np.testing.assert_allclose(p_fit, p, atol=1e-10)
     _check_jit_vmap(f, jax.random.split(KEY, 2), atol=1e-13)
-    check_grads(transform_points, (R[:3], p[:3], model), order=1)
+    check_grads(jax.jit(transform_points), (R[:3], p[:3], model), order=1)
     with pytest.raises(ValueError, match=r"p_w_o: expected shape \(40, 3\)"):
         transform_points(R, p[:-1], model)
     with pytest.raises(ValueError, match="model_points"):
@@ -303,8 +303,11 @@ def test_orbit_camera(workpiece):
     uv, depth = _pixels(cam, pts, default_intrinsics())
     np.testing.assert_allclose(uv, np.broadcast_to([319.5, 239.5], (400, 2)), atol=1e-9)
     assert float(depth.min()) > 0.5
+    centres = jax.jit(
+        lambda r, w: orbit_camera(pts, radius=r, angular_speed=w, height=0.6, times=times).centres
+    )
     check_grads(
-        lambda r, w: orbit_camera(pts, radius=r, angular_speed=w, height=0.6, times=times).centres,
+        centres,
         (0.8, 0.3),
         order=1,
         modes=("rev",),
@@ -428,7 +431,7 @@ def test_observe_visibility_multi_point_jit_vmap_grad():
     _check_jit_vmap(lambda k: observe(k, P, pts), jax.random.split(KEY, 2))
     # Differentiable in the points (the noise is fixed by the key).
     inside = jnp.array([[0.01, 0.02, 1.0], [-0.05, 0.03, 1.2]])
-    check_grads(lambda x: observe(KEY, P[:2], x).uv, (inside,), order=1, modes=("rev",))
+    check_grads(jax.jit(lambda x: observe(KEY, P[:2], x).uv), (inside,), order=1, modes=("rev",))
 
 
 def test_observe_bad_inputs():

@@ -96,6 +96,9 @@ def test_error_shrinks_as_eta_grows():
     times = np.linspace(0, 2, F)
     basis = np.asarray(jt.dct_basis(times, k))
     X = smooth_curve(rng, times, extent=0.2)  # not in the span: eta is finite
+    # one compilation for the 24 same-shape solves (eagerly, the solver's power iteration
+    # would be compiled again at every call)
+    solve = jax.jit(lambda P, uv: jt.reconstruct(P, uv, basis, max_gain=np.inf))
     etas, errs = [], []
     for spread in [0.02, 0.1, 0.5]:
         e_s, eta_s = [], []
@@ -108,7 +111,7 @@ def test_error_shrinks_as_eta_grows():
                 P.append(K640 @ np.hstack([np.asarray(R), np.asarray(t)[:, None]]))
             P = np.array(P)
             uv = project_np(P, X) + rng.normal(size=(F, 2)) * 0.5
-            res = jt.reconstruct(P, uv, basis, max_gain=np.inf)
+            res = solve(P, uv)
             e_s.append(np.mean(np.linalg.norm(np.asarray(res.points) - X, axis=1)))
             eta_s.append(float(jt.reconstructibility(C, X, basis)))
         errs.append(np.median(e_s))
@@ -149,7 +152,10 @@ def test_jit_equals_eager_and_vmap_equals_loop(rng):
     eager = [jt.reconstruct(s["P"], uv[n], s["basis"], w[n]) for n in range(N)]
     jitted = jax.jit(jt.reconstruct)(s["P"], uv[0], s["basis"], w[0])
     np.testing.assert_allclose(jitted.points, eager[0].points, rtol=1e-12, atol=1e-12)
-    batched = jax.vmap(jt.reconstruct, in_axes=(None, 0, None, 0))(s["P"], uv, s["basis"], w)
+    # the batched calls are compiled (run eagerly, each batched operation is compiled apart)
+    batched = jax.jit(jax.vmap(jt.reconstruct, in_axes=(None, 0, None, 0)))(
+        s["P"], uv, s["basis"], w
+    )
     many = jt.reconstruct_points(s["P"], uv, s["basis"], w)
     for n in range(N):
         for b in (batched, many):
@@ -157,7 +163,7 @@ def test_jit_equals_eager_and_vmap_equals_loop(rng):
             np.testing.assert_allclose(b.gain[n], eager[n].gain, rtol=1e-8)
     # vmap over recordings (different cameras) too
     Ps = np.stack([s["P"], s["P"][::-1]])
-    rec = jax.vmap(jt.reconstruct, in_axes=(0, 0, None))(Ps, uv[:2], s["basis"])
+    rec = jax.jit(jax.vmap(jt.reconstruct, in_axes=(0, 0, None)))(Ps, uv[:2], s["basis"])
     np.testing.assert_allclose(
         rec.points[1], jt.reconstruct(Ps[1], uv[1], s["basis"]).points, rtol=1e-11, atol=1e-12
     )
@@ -170,7 +176,9 @@ def test_gradients_wrt_pixels_and_camera_poses(rng):
     def from_pixels(uv):
         return jt.reconstruct(s["P"], uv, basis).points
 
-    check_grads(from_pixels, (jnp.asarray(s["uv"]),), order=1, modes=["fwd", "rev"])
+    # check_grads evaluates the function many times at the same shapes: compile it once
+    # (eagerly, the solver's power iteration is compiled again at every evaluation)
+    check_grads(jax.jit(from_pixels), (jnp.asarray(s["uv"]),), order=1, modes=["fwd", "rev"])
 
     def from_poses(rvecs, ts):
         R = jax.vmap(lambda r: __import__("jaxlie").SO3.exp(r).as_matrix())(rvecs)
@@ -180,7 +188,7 @@ def test_gradients_wrt_pixels_and_camera_poses(rng):
     import jaxlie
 
     rvecs = jax.vmap(lambda R: jaxlie.SO3.from_matrix(R).log())(jnp.asarray(s["R"]))
-    check_grads(from_poses, (rvecs, jnp.asarray(s["t"])), order=1, modes=["fwd", "rev"])
+    check_grads(jax.jit(from_poses), (rvecs, jnp.asarray(s["t"])), order=1, modes=["fwd", "rev"])
 
 
 def test_status_under_jit_for_bad_values(rng):
