@@ -18,6 +18,7 @@ from jaxtraj.design import (
     evaluate_path,
     expected_error,
     expected_error_for_cameras,
+    expected_errors_for_cameras,
     monte_carlo_error,
     path_reconstructibility,
     plausible_trajectories,
@@ -187,6 +188,12 @@ def test_expected_mean_error_bounds_and_predicts_the_simulated_mean_error(cell, 
     P = c["model"].projection_matrices(best.theta, K, c["pred"])
     mean = float(expected_error_for_cameras(P, c["samples"], c["basis"], metric="mean"))
     assert mean == pytest.approx(float(best.expected_mean_error), rel=1e-12)
+    # both metrics from one reconstruction per sample equal the single-metric calls
+    rms2, mean2 = expected_errors_for_cameras(P, c["samples"], c["basis"])
+    assert float(mean2) == pytest.approx(mean, rel=1e-12)
+    rms = float(expected_error_for_cameras(P, c["samples"], c["basis"], metric="rms"))
+    assert float(rms2) == pytest.approx(rms, rel=1e-12)
+    assert rms == pytest.approx(float(best.expected_error), rel=1e-12)
     # Jensen: never above the RMS; never below the noise-free error alone
     assert mean <= float(best.expected_error) * (1 + 1e-12)
     noise_free = float(expected_error_for_cameras(P, c["samples"], c["basis"], 1e-9, "mean"))

@@ -13,6 +13,7 @@ from .constraints import CellLimits as CellLimits
 from .constraints import constraint_values as constraint_values
 from .objectives import expected_error as expected_error
 from .objectives import expected_error_for_cameras as expected_error_for_cameras
+from .objectives import expected_errors_for_cameras as expected_errors_for_cameras
 from .objectives import monte_carlo_error as monte_carlo_error
 from .objectives import path_reconstructibility as path_reconstructibility
 from .objectives import plausible_trajectories as plausible_trajectories

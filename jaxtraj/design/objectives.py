@@ -31,6 +31,7 @@ from .path import CameraPathModel
 __all__ = [
     "expected_error",
     "expected_error_for_cameras",
+    "expected_errors_for_cameras",
     "monte_carlo_error",
     "path_reconstructibility",
     "plausible_trajectories",
@@ -54,19 +55,36 @@ def _frame_errors(P, x, basis, pixel_sigma):
     return bias2 + jnp.trace(cov.points, axis1=-2, axis2=-1)
 
 
-def _aggregate(P, samples, basis, pixel_sigma, per_frame):
-    """Average ``per_frame`` of the frame errors over frames and samples; +inf when the
-    path is exactly degenerate (e.g. a camera riding with the workpiece), rather than the
-    NaN of the singular solve."""
+def _sample_errors(P, samples, basis, pixel_sigma):
+    """(S, F) expected squared error per sample and frame (checked counts, matched dtypes)."""
     P = jnp.asarray(P)
     basis = jnp.asarray(basis, P.dtype)
     _check_counts(P.shape[0], basis.shape[-1])
+    return jax.vmap(lambda x: _frame_errors(P, x, basis, pixel_sigma))(
+        jnp.asarray(samples, P.dtype)
+    )
 
-    def one(x):
-        return jnp.mean(per_frame(_frame_errors(P, x, basis, pixel_sigma)))
 
-    value = jnp.mean(jax.vmap(one)(jnp.asarray(samples, P.dtype)))
-    return jnp.where(jnp.isnan(value), jnp.inf, value)
+def _metrics(e2):
+    """(rms, mean) errors [m] from (S, F) squared errors; +inf when the path is exactly
+    degenerate (e.g. a camera riding with the workpiece), rather than the NaN of the
+    singular solve."""
+
+    def finite_or_inf(v):
+        return jnp.where(jnp.isnan(v), jnp.inf, v)
+
+    return finite_or_inf(jnp.sqrt(jnp.mean(e2))), finite_or_inf(jnp.mean(jnp.sqrt(e2)))
+
+
+def expected_errors_for_cameras(
+    P: Float[ArrayLike, "F 3 4"],
+    samples: Float[ArrayLike, "S F 3"],
+    basis: Float[ArrayLike, "F kb"],
+    pixel_sigma: float = 0.3,
+) -> tuple[Float[Array, ""], Float[Array, ""]]:
+    """Both metrics of :func:`expected_error_for_cameras`, ``(rms, mean)`` [m], from one
+    reconstruction and covariance per sample."""
+    return _metrics(_sample_errors(P, samples, basis, pixel_sigma))
 
 
 METRICS = ("rms", "mean")
@@ -111,11 +129,10 @@ def expected_error_for_cameras(
     metric: str = "rms",
 ) -> Float[Array, ""]:
     """:func:`expected_error` for given cameras (F, 3, 4), e.g. a heuristic path."""
-    if metric == "rms":
-        return jnp.sqrt(_aggregate(P, samples, basis, pixel_sigma, lambda e2: e2))
-    if metric == "mean":
-        return _aggregate(P, samples, basis, pixel_sigma, jnp.sqrt)
-    raise ValueError(f"metric: expected one of {METRICS}, got {metric!r}")
+    if metric not in METRICS:
+        raise ValueError(f"metric: expected one of {METRICS}, got {metric!r}")
+    rms, mean = expected_errors_for_cameras(P, samples, basis, pixel_sigma)
+    return rms if metric == "rms" else mean
 
 
 def _check_counts(F: int, k: int) -> None:

@@ -17,7 +17,7 @@ import optimistix as optx
 from jaxtyping import Array, ArrayLike, Bool, Float
 
 from .constraints import CONSTRAINTS, CellLimits, constraint_values, penalty
-from .objectives import expected_error, path_reconstructibility
+from .objectives import expected_error, expected_errors_for_cameras, path_reconstructibility
 from .path import CameraPathModel
 
 __all__ = ["PathDesign", "design_camera_path", "evaluate_path"]
@@ -80,13 +80,12 @@ def evaluate_path(
     theta = jnp.asarray(theta)
     values = constraint_values(model, theta, limits, predicted, samples)
     viol = jnp.stack([jnp.max(values[name]) for name in CONSTRAINTS])
-    error = expected_error(model, theta, K, predicted, samples, basis, pixel_sigma)
+    P = model.projection_matrices(theta, K, predicted)
+    error, mean_error = expected_errors_for_cameras(P, samples, basis, pixel_sigma)
     return PathDesign(
         theta=theta,
         expected_error=error,
-        expected_mean_error=expected_error(
-            model, theta, K, predicted, samples, basis, pixel_sigma, "mean"
-        ),
+        expected_mean_error=mean_error,
         eta=path_reconstructibility(model, theta, samples, basis),
         violation=viol,
         active=jnp.abs(viol) <= active_tol,
