@@ -121,12 +121,17 @@ def fit_rigid_trajectory(
     w = jnp.ones(uv.shape[:2], P.dtype) if weights is None else weights
     obs = w > 0
     uv = jnp.where(obs[..., None], uv, 0.0)
-    F = basis.shape[0]
-
     if init is None:
         R0, t0 = kabsch_per_frame(P, uv, model_points, basis, w)
     else:
         R0, t0 = (jnp.asarray(a, P.dtype) for a in init)
+    return _fit(P, uv, model_points, basis, w, R0, t0, loss, loss_scale, max_steps)
+
+
+@eqx.filter_jit  # one compiled program per shape and loss (run eagerly: seconds per call)
+def _fit(P, uv, model_points, basis, w, R0, t0, loss, loss_scale, max_steps):
+    obs = w > 0
+    F = basis.shape[0]
     R_ref = R0[F // 2]
     rotvec = jax.vmap(lambda R: jaxlie.SO3.from_matrix(R @ R_ref.T).log())(R0)
     pinv = jnp.linalg.pinv(basis)
