@@ -17,7 +17,7 @@ from tests.test_estimators_scenes import project_np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
 
-import bench_estimators  # noqa: E402
+import bench_estimators
 
 
 def test_known_layout_resolves_the_slow_camera_scale_ambiguity():
