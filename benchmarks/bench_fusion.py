@@ -7,6 +7,10 @@ accuracy on simulated and EuRoC data.
 Throughput is IMU samples processed per second (the stream also holds robot poses every
 12 ms and image times at 30 Hz); the real-time factor is that rate divided by the IMU's
 250 Hz. Times are the minimum over repeats after compilation.
+
+Importing jaxtraj lets XLA:CPU compile the filter's scan into one kernel (see
+``jaxtraj/_xla.py``); for comparison the benchmark also times the scan in a subprocess with
+that option off (``JAXTRAJ_XLA_SMALL_LOOPS=0``: one XLA runtime dispatch per fused op).
 """
 
 from __future__ import annotations
@@ -14,6 +18,7 @@ from __future__ import annotations
 import argparse
 import os
 import platform
+import subprocess
 import sys
 import time
 from pathlib import Path
@@ -81,6 +86,27 @@ def _recording(key, duration):
     return rec, ev, initial_state(ev)
 
 
+def one_kernel(ev, x0) -> bool:
+    """Whether XLA compiled the filter's scan into one kernel (the small-loop option)."""
+    return "xla_cpu_small_call" in eskf.lower(ev, x0, P0, IMU_NOISE).compile().as_text()
+
+
+def scan_rate(duration, repeats, store="diag"):
+    """IMU samples per second of the float64 single-stream scan."""
+    rec, ev, x0 = _recording(jax.random.PRNGKey(0), duration)
+    dt = _time(lambda: eskf(ev, x0, P0, IMU_NOISE, store=store).x.p, repeats)
+    return int(rec.imu.t.shape[0]) / dt
+
+
+def scan_rate_without_small_loops(duration, repeats):
+    """:func:`scan_rate` in a fresh interpreter with the small-loop option off."""
+    env = {k: v for k, v in os.environ.items() if k != "XLA_FLAGS"}
+    env["JAXTRAJ_XLA_SMALL_LOOPS"] = "0"
+    cmd = [sys.executable, __file__, "--rate-only", str(duration), str(repeats)]
+    out = subprocess.run(cmd, env=env, capture_output=True, text=True, check=True)
+    return float(out.stdout.split()[-1])
+
+
 def throughput(duration, numpy_duration, streams, repeats):
     rec, ev, x0 = _recording(jax.random.PRNGKey(0), duration)
     n_imu = int(rec.imu.t.shape[0])
@@ -107,6 +133,14 @@ def throughput(duration, numpy_duration, streams, repeats):
             rows.append(
                 (f"jax scan, {name}, 1 stream, store={store}", n_imu / dt, n_imu / dt / np_rate)
             )
+    rate = scan_rate_without_small_loops(duration, repeats)
+    rows.append(
+        (
+            "jax scan, float64, 1 stream, store=diag, small-loop option off (op-by-op dispatch)",
+            rate,
+            rate / np_rate,
+        )
+    )
     dt = _time(lambda: rts_smoother(eskf(ev, x0, P0, IMU_NOISE), IMU_NOISE).x.p, repeats)
     rows.append(("jax filter + RTS smoother, float64, 1 stream", n_imu / dt, n_imu / dt / np_rate))
 
@@ -129,7 +163,7 @@ def throughput(duration, numpy_duration, streams, repeats):
             (f"jax scan, {name}, {streams} streams, eskf_batch, total", rate, rate / np_rate)
         )
     events_per_imu = ev.t.shape[0] / n_imu
-    return rows, agree, n_imu, events_per_imu, imu_np
+    return rows, agree, n_imu, events_per_imu, imu_np, one_kernel(ev, x0)
 
 
 def _rmse(p, q, p_ref, q_ref):
@@ -214,10 +248,14 @@ def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--quick", action="store_true", help="short streams, few repeats")
     ap.add_argument("--output", default=None, help="write the markdown report here")
+    ap.add_argument("--rate-only", nargs=2, metavar=("SECONDS", "REPEATS"), help=argparse.SUPPRESS)
     args = ap.parse_args(argv)
+    if args.rate_only:
+        print(scan_rate(float(args.rate_only[0]), int(args.rate_only[1])))
+        return 0
     duration, np_dur, streams, repeats = (4.0, 1.0, 64, 3) if args.quick else (20.0, 4.0, 64, 5)
 
-    rows, agree, n_imu, epi, imu_np = throughput(duration, np_dur, streams, repeats)
+    rows, agree, n_imu, epi, imu_np, fused = throughput(duration, np_dur, streams, repeats)
     out = []
     out.append("# Fusion benchmark\n")
     out.append(
@@ -225,7 +263,9 @@ def main(argv=None):
         f"jax {jax.__version__} on {jax.devices()[0].platform}. Stream: {duration:g} s at "
         f"{IMU_RATE:g} Hz IMU ({n_imu} samples), robot poses every 12 ms, images at 30 Hz "
         f"({epi:.2f} events per IMU sample). NumPy loop timed on the first {imu_np} IMU "
-        f"samples; it agrees with the scan to {agree:.1e} m in position.\n"
+        f"samples; it agrees with the scan to {agree:.1e} m in position. Small-loop option "
+        f"(XLA compiles the single-stream scan into one kernel): "
+        f"{'active' if fused else 'NOT active'}.\n"
     )
     out.append("| implementation | IMU samples / s | real-time factor (250 Hz) | x NumPy |")
     out.append("|---|---:|---:|---:|")

@@ -1,8 +1,12 @@
 """jaxtraj: trajectory and 6-DoF pose of a moving workpiece from a robot-carried camera.
 
 The public names are re-exported here; see the README and ``DESIGN`` notes for the method.
+
+Importing jaxtraj before the first JAX computation lets XLA:CPU compile small loops (such
+as the camera-pose filter's scan) into one kernel; see :mod:`jaxtraj._xla`.
 """
 
+from . import _xla  # noqa: F401  (first: sets XLA_FLAGS before anything compiles)
 from .analysis import OnRay as OnRay
 from .analysis import conditioning_gain as conditioning_gain
 from .analysis import on_ray_decomposition as on_ray_decomposition

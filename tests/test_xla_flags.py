@@ -1,0 +1,69 @@
+"""The XLA:CPU small-loop option set at import: flag handling, and that the filter's scan
+really is compiled into one kernel with it (and not without it)."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+
+import pytest
+
+from jaxtraj import _xla
+
+# Builds a short simulated stream, compiles the filter and prints whether XLA emitted the
+# scan as one "small call" kernel. Run in a fresh interpreter: XLA reads XLA_FLAGS once.
+_PROBE = """
+import jax
+jax.config.update("jax_enable_x64", True)
+import jaxtraj
+from jaxtraj.fusion import (ImuNoise, RobotNoise, build_events, eskf, initial_covariance,
+                            initial_state)
+from jaxtraj.fusion.simulate import LissajousTrajectory, simulate_recording
+rec = simulate_recording(jax.random.PRNGKey(0), LissajousTrajectory(), duration=0.3,
+                         imu_noise=ImuNoise.xsens_mti(), robot_noise=RobotNoise.kuka_class())
+ev = build_events(rec.imu, rec.robot, rec.image_times, noise=RobotNoise.kuka_class())
+P0 = initial_covariance(1e-3, 0.05, 0.02, 0.1, 0.01)
+hlo = eskf.lower(ev, initial_state(ev), P0, ImuNoise.xsens_mti()).compile().as_text()
+print("SMALL_CALL" if "xla_cpu_small_call" in hlo else "THUNKS")
+"""
+
+
+def _probe(env_update: dict[str, str]) -> str:
+    env = {k: v for k, v in os.environ.items() if k != "XLA_FLAGS"}
+    env.update(env_update)
+    out = subprocess.run(
+        [sys.executable, "-c", _PROBE], env=env, capture_output=True, text=True, timeout=300
+    )
+    assert out.returncode == 0, out.stderr[-2000:]
+    return out.stdout.strip().splitlines()[-1]
+
+
+def test_flag_is_appended_to_existing_flags():
+    flags = _xla.with_small_loop_flag("--xla_force_host_platform_device_count=2")
+    assert flags.startswith("--xla_force_host_platform_device_count=2 ")
+    assert flags.endswith(
+        f"--xla_backend_extra_options=xla_cpu_small_while_loop_byte_threshold="
+        f"{_xla.SMALL_LOOP_BYTES}"
+    )
+    assert _xla.with_small_loop_flag("") == flags.split(" ", 1)[1]
+
+
+def test_users_backend_extra_options_win():
+    mine = "--xla_backend_extra_options=xla_cpu_small_while_loop_byte_threshold=5"
+    assert _xla.with_small_loop_flag(mine) == mine
+
+
+def test_opt_out_leaves_flags_alone(monkeypatch):
+    monkeypatch.setenv("XLA_FLAGS", "--xla_cpu_enable_fast_math=false")
+    monkeypatch.setenv("JAXTRAJ_XLA_SMALL_LOOPS", "0")
+    assert _xla.configure_small_loops() is False
+    assert os.environ["XLA_FLAGS"] == "--xla_cpu_enable_fast_math=false"
+    monkeypatch.setenv("JAXTRAJ_XLA_SMALL_LOOPS", "1")
+    assert _xla.configure_small_loops() is True
+    assert "xla_cpu_small_while_loop_byte_threshold" in os.environ["XLA_FLAGS"]
+
+
+@pytest.mark.parametrize(("opt", "expected"), [("1", "SMALL_CALL"), ("0", "THUNKS")])
+def test_filter_scan_compiles_to_one_kernel(opt, expected):
+    assert _probe({"JAXTRAJ_XLA_SMALL_LOOPS": opt}) == expected
