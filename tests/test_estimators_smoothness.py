@@ -34,6 +34,31 @@ def _random_blocktri(rng, F, s):
     return A, D, E
 
 
+@pytest.mark.parametrize("s", [1, 3, 6, 9])
+def test_unrolled_small_cholesky_and_triangular_solves(rng, s):
+    G = rng.normal(size=(s, s)) + 3 * np.eye(s)
+    A = G @ G.T
+    C = np.asarray(bt._cholesky(jnp.asarray(A)))
+    np.testing.assert_allclose(C, np.linalg.cholesky(A), rtol=1e-12, atol=1e-12)
+    B = rng.normal(size=(s, 4))
+    np.testing.assert_allclose(
+        np.asarray(bt._tri(jnp.asarray(C), jnp.asarray(B))),
+        np.linalg.solve(C, B),
+        rtol=1e-10,
+        atol=1e-12,
+    )
+    np.testing.assert_allclose(
+        np.asarray(bt._tri(jnp.asarray(C), jnp.asarray(B[:, 0]), trans=1)),
+        np.linalg.solve(C.T, B[:, 0]),
+        rtol=1e-10,
+        atol=1e-12,
+    )
+    # not positive definite: NaN, as a failed LAPACK factorisation gives under JAX
+    bad = A.copy()
+    bad[-1, -1] = -1.0
+    assert np.isnan(np.asarray(bt._cholesky(jnp.asarray(bad)))).any()
+
+
 @pytest.mark.parametrize("s", [3, 6])
 def test_block_tridiagonal_solver_matches_dense(rng, s):
     F = 9
