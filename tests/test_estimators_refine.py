@@ -95,3 +95,20 @@ def test_bad_inputs(rng):
         refine_dct(s["P"], uv, b, true, max_steps=0)
     with pytest.raises(ValueError, match="uv"):
         refine_points(s["P"], uv, b, true[None])
+
+
+def test_flagged_starts_are_kept(rng):
+    s, b, _, _X, uv = _in_span_scene(rng)
+    uvs = np.stack([uv, uv + 0.3 * rng.normal(size=uv.shape)])
+    lin = jt.reconstruct_points(s["P"], uvs, b)
+    start = np.asarray(lin.coeffs) + 0.01  # a start the optimiser would move
+    status = np.array([jt.Status.OK, jt.Status.DEGENERATE])
+    out = refine_points(s["P"], uvs, b, start, status=status, pixel_sigma=0.5)
+    free = refine_points(s["P"], uvs, b, start, pixel_sigma=0.5)
+    np.testing.assert_array_equal(np.asarray(out.coeffs[1]), start[1])
+    assert np.asarray(out.kept_start).tolist() == [False, True]
+    assert float(out.cost[1]) == float(out.cost_initial[1])
+    np.testing.assert_array_equal(np.asarray(out.coeffs[0]), np.asarray(free.coeffs[0]))
+    assert float(free.rms_px[1]) < float(free.rms_px_initial[1])  # it would have moved
+    with pytest.raises(ValueError, match="status"):
+        refine_points(s["P"], uvs, b, start, status=status[:1])

@@ -122,6 +122,76 @@ def test_result_is_the_map_estimate(rng):
     np.testing.assert_allclose(np.asarray(res.state_cov[0]), cov0, rtol=0.05)
 
 
+def test_start_prior_is_part_of_the_map_objective(rng):
+    s = robot_scene(rng, F=30, mode="random", noise=0.4, irregular=True)
+    v0 = (s["X"][1] - s["X"][0]) / (s["times"][1] - s["times"][0])
+    mean = np.stack([s["X"][0] + 0.01, v0 - 0.05])  # a prior that disagrees a little
+    cov = np.diag([0.02**2] * 3 + [0.1**2] * 3)
+    res = smooth_trajectory(
+        s["P"],
+        s["uv"],
+        s["times"],
+        pixel_sigma=0.4,
+        process_psd=0.1,
+        iterations=6,
+        start_mean=mean,
+        start_cov=cov,
+    )
+    assert int(res.status) == jt.Status.OK
+    args = (jnp.asarray(s["P"]), jnp.asarray(s["uv"]), jnp.asarray(s["times"]), 0.1, 0.4)
+    Ci = jnp.asarray(np.linalg.inv(cov))
+
+    def f(st):
+        d0 = (st[0] - mean).reshape(-1)
+        return _map_objective(*args, st) + d0 @ Ci @ d0
+
+    f = jax.jit(f)
+    g = np.asarray(jax.grad(f)(res.states))
+    scale = np.asarray(jax.grad(f)(res.states + 1e-4))
+    assert np.linalg.norm(g) < 1e-6 * np.linalg.norm(scale)
+    free = smooth_trajectory(s["P"], s["uv"], s["times"], pixel_sigma=0.4, process_psd=0.1)
+    assert not np.allclose(np.asarray(free.states[0]), np.asarray(res.states[0]), atol=1e-6)
+
+
+def test_start_prior_per_point_or_shared_pins_the_first_state(rng):
+    # slow camera: without the prior the scale along the rays is free (about 1 m off);
+    # the prior pins the first state, but not the scale at later frames
+    s = robot_scene(rng, F=60, mode="slow", noise=0.4)
+    v0 = (s["X"][1] - s["X"][0]) / (s["times"][1] - s["times"][0])
+    mean = np.stack([s["X"][0], v0])
+    cov = np.diag([1e-3**2] * 3 + [1e-2**2] * 3)
+    uvs = np.stack([s["uv"], s["uv"]])
+    free = smooth_points(s["P"], uvs, s["times"], pixel_sigma=0.4, covariance=False)
+    fixed = smooth_points(
+        s["P"],
+        uvs,
+        s["times"],
+        pixel_sigma=0.4,
+        covariance=False,
+        start_mean=np.stack([mean, mean]),
+        start_cov=cov,
+    )
+    shared = smooth_points(
+        s["P"],
+        uvs,
+        s["times"],
+        pixel_sigma=0.4,
+        covariance=False,
+        start_mean=mean,
+        start_cov=cov,
+    )
+    np.testing.assert_array_equal(np.asarray(shared.points), np.asarray(fixed.points))
+    e_free, e_fixed = rmse(free.points[0], s["X"]), rmse(fixed.points[0], s["X"])
+    assert e_free > 0.3 and e_fixed < 0.8 * e_free
+    assert np.linalg.norm(np.asarray(fixed.points[0, 0]) - s["X"][0]) < 3e-3
+    with pytest.raises(ValueError, match="start_mean and start_cov"):
+        smooth_points(s["P"], uvs, s["times"], start_mean=mean)
+    with pytest.raises(ValueError, match="start_mean"):
+        smooth_trajectory(s["P"], s["uv"], s["times"], start_mean=mean[:1], start_cov=cov)
+    with pytest.raises(ValueError, match="positive definite"):
+        smooth_trajectory(s["P"], s["uv"], s["times"], start_mean=mean, start_cov=-cov)
+
+
 @pytest.mark.parametrize("mode", ["random", "fast"])
 def test_more_accurate_than_plain_dct_with_any_k(mode):
     rng = np.random.default_rng(7)

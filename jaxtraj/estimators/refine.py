@@ -9,6 +9,10 @@ enters as the residual transform ``e -> e sqrt(rho(|e|^2)) / |e|``, whose square
 ``rho``. The solver runs with ``throw=False`` so that it can be vmapped; its outcome is
 reported in ``converged`` and the result never has a larger objective than the start
 (if the solver did not improve, the starting coefficients are returned).
+
+Pass the linear solve's ``status``: a start flagged DEGENERATE (or otherwise not OK) lies
+on an almost flat likelihood along the viewing rays, where lowering the reprojection error
+by a fraction of a pixel can move the point metres away; such starts are kept unchanged.
 """
 
 from __future__ import annotations
@@ -21,6 +25,7 @@ import optimistix as optx
 from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
 from .._checks import check_shape
+from ..solve import Status
 from ._common import as_float, check_loss, check_positive, homogeneous, rho, validate_track
 
 __all__ = ["Refined", "refine_dct", "refine_points"]
@@ -36,6 +41,8 @@ class Refined(eqx.Module):
         cost, cost_initial: the robust objective (sum of rho / sigma^2) after and before.
         steps: optimiser steps taken.
         converged: the optimiser reported success (False: hit max_steps or failed).
+        kept_start: the start was returned unchanged (no improvement, or a ``status``
+            other than OK).
     """
 
     coeffs: Float[Array, "k 3"]
@@ -46,6 +53,7 @@ class Refined(eqx.Module):
     cost_initial: Float[Array, ""]
     steps: Int[Array, ""]
     converged: Bool[Array, ""]
+    kept_start: Bool[Array, ""]
 
 
 def _errors(P, uv, basis, coeffs):
@@ -69,6 +77,7 @@ def refine_dct(
     coeffs: Float[ArrayLike, "k 3"],
     weights: Float[ArrayLike, " F"] | None = None,
     *,
+    status: Int[ArrayLike, ""] | None = None,
     pixel_sigma: float = 1.0,
     loss: str = "l2",
     loss_scale: float = 2.0,
@@ -86,6 +95,9 @@ def refine_dct(
         P: (F, 3, 4) projection matrices; uv: (F, 2) pixels [px] (weight 0: ignored).
         basis: (F, k) trajectory basis; coeffs: (k, 3) start, e.g. ``reconstruct(...).coeffs``.
         weights: (F,) weights (relative inverse variances), 0 for missing detections.
+        status: the linear solve's :class:`~jaxtraj.Status` for this start (e.g.
+            ``reconstruct(...).status``); if it is not OK the start is returned unchanged.
+            ``None``: refine every start.
         pixel_sigma: pixel noise standard deviation [px] (scales the cost only).
         loss: ``"l2"``, ``"huber"`` or ``"cauchy"``; loss_scale: its threshold [px].
         solver: ``"lm"`` (Levenberg-Marquardt) or ``"gn"`` (Gauss-Newton).
@@ -123,6 +135,8 @@ def refine_dct(
     sol = optx.least_squares(residuals, opt, coeffs, max_steps=max_steps, throw=False, options={})
     c0, c1 = cost(coeffs), cost(sol.value)
     better = jnp.isfinite(c1) & (c1 <= c0)
+    if status is not None:
+        better = better & (jnp.asarray(status) == Status.OK)
     beta = jnp.where(better, sol.value, coeffs)
 
     def rms(b):
@@ -139,13 +153,14 @@ def refine_dct(
         cost_initial=c0,
         steps=jnp.asarray(sol.stats["num_steps"], jnp.int32),
         converged=sol.result == optx.RESULTS.successful,
+        kept_start=~better,
     )
 
 
 @eqx.filter_jit
-def _refine_points(P, uv, basis, coeffs, weights, kwargs):
-    fn = lambda u, c, w: refine_dct(P, u, basis, c, w, **kwargs)  # noqa: E731
-    return jax.vmap(fn)(uv, coeffs, weights)
+def _refine_points(P, uv, basis, coeffs, weights, status, kwargs):
+    fn = lambda u, c, w, s: refine_dct(P, u, basis, c, w, status=s, **kwargs)  # noqa: E731
+    return jax.vmap(fn)(uv, coeffs, weights, status)
 
 
 def refine_points(
@@ -154,9 +169,13 @@ def refine_points(
     basis: Float[ArrayLike, "F k"],
     coeffs: Float[ArrayLike, "N k 3"],
     weights: Float[ArrayLike, "N F"] | None = None,
+    status: Int[ArrayLike, " N"] | None = None,
     **kwargs,
 ) -> Refined:
-    """:func:`refine_dct` for N points seen by the same cameras (jit + vmap)."""
+    """:func:`refine_dct` for N points seen by the same cameras (jit + vmap).
+
+    ``status``: (N,) statuses of the linear solves (``reconstruct_points(...).status``);
+    points whose status is not OK keep their start."""
     if np.ndim(uv) != 3:
         raise ValueError(f"uv: expected shape (N, F, 2), got {np.shape(uv)}")
     N = np.shape(uv)[0]
@@ -164,4 +183,7 @@ def refine_points(
     validate_track(P, uv[0], None, None if weights is None else weights[0])
     P, uv, basis, coeffs, weights = as_float(P, uv, basis, coeffs, weights)
     w = jnp.ones(uv.shape[:2], P.dtype) if weights is None else weights
-    return _refine_points(P, uv, basis, coeffs, w, kwargs)
+    st = jnp.zeros(N, jnp.int32) if status is None else jnp.asarray(status, jnp.int32)
+    if st.shape != (N,):
+        raise ValueError(f"status: expected shape ({N},), one per point, got {st.shape}")
+    return _refine_points(P, uv, basis, coeffs, w, st, kwargs)

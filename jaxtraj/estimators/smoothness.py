@@ -41,7 +41,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float, Int
 
-from .._checks import check_tracks
+from .._checks import check_shape, check_tracks, is_concrete
 from ..solve import Status
 from . import _blocktri as bt
 from ._common import (
@@ -147,8 +147,9 @@ def _transition(dt, order: int):
     return A, Qinv
 
 
-def _assemble(H, g, A, Qinv, inv_q, order):
-    """Block-tridiagonal normal equations of data blocks (H, g) plus the prior."""
+def _assemble(H, g, A, Qinv, inv_q, order, start=None):
+    """Block-tridiagonal normal equations of data blocks (H, g) plus the prior (and an
+    optional Gaussian prior ``start = (information, mean)`` on the first state)."""
     F = H.shape[0]
     s = 3 * order
     eye3 = jnp.eye(3, dtype=H.dtype)
@@ -159,6 +160,10 @@ def _assemble(H, g, A, Qinv, inv_q, order):
     D = D.at[1:].add(Wk)
     E = -jnp.einsum("fij,fjk->fik", Wk, Ak)
     b = jnp.zeros((F, s), H.dtype).at[:, :3].set(g)
+    if start is not None:
+        L0, m0 = start
+        D = D.at[0].add(L0)
+        b = b.at[0].add(L0 @ m0)
     scale = jnp.mean(jnp.trace(D, axis1=1, axis2=2)) / s
     D = D + (jnp.finfo(H.dtype).eps * scale) * jnp.eye(s, dtype=H.dtype)
     return D, E, b
@@ -177,28 +182,33 @@ def _argmin_log(grid, values):
     return jnp.where(best == i, jnp.exp(logq), grid[best])
 
 
-def _prior_cost(x, A, Qinv, inv_q, order):
+def _prior_cost(x, A, Qinv, inv_q, order, start=None):
     S = x.reshape(x.shape[0], order, 3)
     r = S[1:] - jnp.einsum("fjl,fla->fja", A, S[:-1])
-    return inv_q * jnp.einsum("fja,fjl,fla->", r, Qinv, r)
+    cost = inv_q * jnp.einsum("fja,fjl,fla->", r, Qinv, r)
+    if start is not None:
+        d0 = x[0] - start[1]
+        cost = cost + d0 @ start[0] @ d0
+    return cost
 
 
-def _solve(H, g, A, Qinv, inv_q, order, with_cov):
-    D, E, b = _assemble(H, g, A, Qinv, inv_q, order)
+def _solve(H, g, A, Qinv, inv_q, order, with_cov, start=None):
+    D, E, b = _assemble(H, g, A, Qinv, inv_q, order, start)
     chol, y = bt.factor_forward(D, E, b)
     x = bt.back_substitute(chol, y)
     cov = bt.diag_inverse(chol) if with_cov else None
     return x, cov, bt.min_pivot_ratio(chol, D)
 
 
-def _neg2_log_evidence(H, g, c, A, Qinv, q, order):
+def _neg2_log_evidence(H, g, c, A, Qinv, q, order, start=None):
     """-2 log marginal likelihood (up to a constant) of the linearised model at ``q``.
 
     The minimum of ``x^T N x - 2 b^T x + c`` is ``c - |L^-1 b|^2``; the diffuse prior
     contributes ``log det N + (F - 1) 3 order log q`` (its null space, the polynomial
-    part, is not penalised). Needs only the forward half of the solve.
+    part, is not penalised). A prior on the first state adds terms that do not depend on
+    ``q`` (left out). Needs only the forward half of the solve.
     """
-    D, E, b = _assemble(H, g, A, Qinv, 1 / q, order)
+    D, E, b = _assemble(H, g, A, Qinv, 1 / q, order, start)
     chol, y = bt.factor_forward(D, E, b)
     F = H.shape[0]
     return c - jnp.sum(y * y) + bt.logdet(chol) + (F - 1) * 3 * order * jnp.log(q)
@@ -248,6 +258,8 @@ def smooth_trajectory(
     depth_guess: float = 1.0,
     criterion: str = "ml",
     covariance: bool = True,
+    start_mean: Float[ArrayLike, "order 3"] | None = None,
+    start_cov: Float[ArrayLike, "s s"] | None = None,
 ) -> Smoothed:
     """Estimate one point's trajectory with a smoothness prior (no basis, no k).
 
@@ -275,6 +287,11 @@ def smooth_trajectory(
             choice of ``process_psd``; both use ``pixel_sigma``.
         covariance: compute the posterior covariances and ``edf`` (a selected inversion,
             about as costly as one more solve); ``False`` leaves them NaN.
+        start_mean, start_cov: optional Gaussian prior on the state at ``times[0]``: mean
+            (order, 3) (position [m], velocity [m/s], ...) and covariance (3 order,
+            3 order) in the order of ``Smoothed.states`` flattened (position first), e.g.
+            a hand-over pose known from the robot or the end of an earlier track. Without
+            it the start is free (no initial guess needed). Both or neither.
 
     Returns:
         A :class:`Smoothed` with states, posterior covariances and a status.
@@ -292,6 +309,7 @@ def smooth_trajectory(
         psd_grid,
     )
     grid = default_psd_grid(order) if psd_grid is None else psd_grid
+    _validate_start(start_mean, start_cov, order)
     P, uv, times, weights = as_float(P, uv, times, weights)
     dtype = P.dtype
     return _smooth_jit(
@@ -309,7 +327,27 @@ def smooth_trajectory(
         depth_guess=jnp.asarray(depth_guess, dtype),
         criterion=criterion,
         covariance=covariance,
+        start_mean=None if start_mean is None else jnp.asarray(start_mean, dtype),
+        start_cov=None if start_cov is None else jnp.asarray(start_cov, dtype),
     )
+
+
+def _validate_start(start_mean, start_cov, order) -> None:
+    if (start_mean is None) != (start_cov is None):
+        raise ValueError(
+            "start_mean and start_cov: give both (a prior on the first state) or neither"
+        )
+    if start_mean is None:
+        return
+    s = 3 * order
+    check_shape("start_mean", start_mean, (order, 3), "(order, 3) first state [m, m/s, ...]")
+    check_shape("start_cov", start_cov, (s, s), f"({s}, {s}) covariance of the first state")
+    if is_concrete(start_cov):
+        C = np.asarray(start_cov, float)
+        if not np.all(np.isfinite(C)) or not np.allclose(C, C.T, rtol=1e-9, atol=0.0):
+            raise ValueError("start_cov: expected a finite symmetric matrix")
+        if np.linalg.eigvalsh(C).min() <= 0:
+            raise ValueError("start_cov: expected a positive definite covariance")
 
 
 def _smooth(
@@ -328,6 +366,8 @@ def _smooth(
     depth_guess,
     criterion,
     covariance,
+    start_mean=None,
+    start_cov=None,
     curve_only=False,
 ):
     """The traced body of :func:`smooth_trajectory` (inputs already validated)."""
@@ -345,6 +385,11 @@ def _smooth(
     A, Qinv = _transition(jnp.diff(times) / tau, order)
     qscale = tau ** (2 * order - 1)  # q in units of m^2 / tau^(2 order - 1)
     grid = jnp.asarray(grid, dtype) * qscale
+    unit = (tau ** -np.repeat(np.arange(order), 3).astype(float)).astype(dtype)  # to seconds
+    start = None
+    if start_mean is not None:  # in the solver's time unit tau
+        cov_tau = start_cov / (unit[:, None] * unit[None, :])
+        start = (jnp.linalg.inv(cov_tau), start_mean.reshape(-1) / unit)
 
     Qa, qa = algebraic_blocks(Pn, uv)
     QtQ = jnp.einsum("fai,faj->fij", Qa, Qa)
@@ -379,7 +424,9 @@ def _smooth(
 
     def linear_pass(q, z, omega):
         ww = w * omega / (sigma2 * z * z)
-        x, _, piv = _solve(ww[:, None, None] * QtQ, ww[:, None] * Qtq, A, Qinv, 1 / q, order, False)
+        x, _, piv = _solve(
+            ww[:, None, None] * QtQ, ww[:, None] * Qtq, A, Qinv, 1 / q, order, False, start
+        )
         z = jnp.einsum("fi,fi->f", Pn[:, 2, :3], x[:, :3]) + Pn[:, 2, 3]
         # a depth near zero (an estimate at the camera) must not dominate the weights
         z = jnp.maximum(jnp.abs(z), 0.1 * jnp.median(jnp.abs(z)) + jnp.finfo(dtype).tiny)
@@ -390,7 +437,7 @@ def _smooth(
 
     def ubre(q, H, g, e, J, X0):
         """Unbiased risk ``RSS / sigma^2 + 2 edf - n``, edf and the solve at ``q``."""
-        x, cov, pivot = _solve(H, g, A, Qinv, 1 / q, order, True)
+        x, cov, pivot = _solve(H, g, A, Qinv, 1 / q, order, True, start)
         r = e + jnp.einsum("fai,fi->fa", J, x[:, :3] - X0)
         rss = jnp.sum(w * omega * jnp.sum(r * r, axis=1)) / sigma2
         edf = jnp.einsum("fij,fji->", H, cov[:, :3, :3])
@@ -399,7 +446,7 @@ def _smooth(
     if process_psd is None:
         H, g, c, e, J = gn_blocks(x[:, :3], omega)
         if criterion == "ml":
-            crit = jax.vmap(lambda q: _neg2_log_evidence(H, g, c, A, Qinv, q, order))(grid)
+            crit = jax.vmap(lambda q: _neg2_log_evidence(H, g, c, A, Qinv, q, order, start))(grid)
         else:
             crit = jax.vmap(lambda q: ubre(q, H, g, e, J, x[:, :3])[0])(grid)
         if curve_only:
@@ -408,12 +455,12 @@ def _smooth(
         if iterations == 0:
             x, z, omega, pivot = linear_pass(q, z, omega)
 
-    best = data_cost(x[:, :3]) + _prior_cost(x, A, Qinv, 1 / q, order)
+    best = data_cost(x[:, :3]) + _prior_cost(x, A, Qinv, 1 / q, order, start)
     for _ in range(iterations):
         omega = robust_weight(x[:, :3])
         H, g, _, _, _ = gn_blocks(x[:, :3], omega)
-        x_new, _, pivot = _solve(H, g, A, Qinv, 1 / q, order, False)
-        cost = data_cost(x_new[:, :3]) + _prior_cost(x_new, A, Qinv, 1 / q, order)
+        x_new, _, pivot = _solve(H, g, A, Qinv, 1 / q, order, False, start)
+        cost = data_cost(x_new[:, :3]) + _prior_cost(x_new, A, Qinv, 1 / q, order, start)
         better = (cost <= best) | ~jnp.isfinite(best)
         x = jnp.where(better, x_new, x)
         best = jnp.where(better, cost, best)
@@ -425,8 +472,6 @@ def _smooth(
     else:
         edf, cov = jnp.nan, jnp.full((F, 3 * order, 3 * order), jnp.nan, dtype)
 
-    unit = tau ** -np.repeat(np.arange(order), 3).astype(float)  # back to seconds
-    unit = unit.astype(dtype)
     states = (x * unit).reshape(F, order, 3)
     cov = cov * unit[:, None] * unit[None, :]
     edf = jnp.asarray(edf, dtype)
@@ -459,11 +504,6 @@ def _smooth(
 _smooth_jit = eqx.filter_jit(_smooth)
 
 
-@eqx.filter_jit
-def _smooth_points(P, uv, times, weights, kwargs):
-    return jax.vmap(lambda u, w: smooth_trajectory(P, u, times, w, **kwargs))(uv, weights)
-
-
 def smooth_points(
     P: Float[ArrayLike, "F 3 4"],
     uv: Float[ArrayLike, "N F 2"],
@@ -474,7 +514,9 @@ def smooth_points(
     """:func:`smooth_trajectory` for N points seen by the same cameras (jit + vmap).
 
     Keyword arguments are those of :func:`smooth_trajectory`; ``process_psd`` and
-    ``pixel_sigma`` are shared by all points. Fields gain a leading axis of size N.
+    ``pixel_sigma`` are shared by all points. ``start_mean`` may be (order, 3) for all
+    points or (N, order, 3), one per point; ``start_cov`` is shared. Fields gain a leading
+    axis of size N.
     """
     _validate_batch(P, uv, times, weights)
     P, uv, times, weights = as_float(P, uv, times, weights)
@@ -483,7 +525,27 @@ def smooth_points(
         if kwargs.get(name) is not None:  # traced, so a new value does not recompile
             check_positive(name, kwargs[name], "a positive value")
             kwargs[name] = jnp.asarray(kwargs[name], P.dtype)
-    return _smooth_points(P, uv, times, w, kwargs)
+    mean, cov = kwargs.pop("start_mean", None), kwargs.pop("start_cov", None)
+    order = kwargs.get("order", 2)
+    if mean is not None and np.ndim(mean) == 3:
+        check_shape("start_mean", mean, (uv.shape[0], order, 3), "(N, order, 3), one per point")
+        _validate_start(mean[0], cov, order)
+    else:
+        _validate_start(mean, cov, order)
+    if mean is not None:
+        mean = jnp.broadcast_to(jnp.asarray(mean, P.dtype), (uv.shape[0], order, 3))
+        cov = jnp.asarray(cov, P.dtype)
+    return _smooth_points(P, uv, times, w, mean, cov, kwargs)
+
+
+@eqx.filter_jit
+def _smooth_points(P, uv, times, weights, start_mean, start_cov, kwargs):
+    def one(u, w, m):
+        return smooth_trajectory(P, u, times, w, start_mean=m, start_cov=start_cov, **kwargs)
+
+    if start_mean is None:
+        return jax.vmap(lambda u, w: one(u, w, None))(uv, weights)
+    return jax.vmap(one)(uv, weights, start_mean)
 
 
 @eqx.filter_jit
