@@ -18,14 +18,16 @@ import jax
 jax.config.update("jax_enable_x64", True)
 import jaxtraj
 from jaxtraj.fusion import (ImuNoise, RobotNoise, build_events, eskf, initial_covariance,
-                            initial_state)
+                            initial_state, rts_smoother)
 from jaxtraj.fusion.simulate import LissajousTrajectory, simulate_recording
 rec = simulate_recording(jax.random.PRNGKey(0), LissajousTrajectory(), duration=0.3,
                          imu_noise=ImuNoise.xsens_mti(), robot_noise=RobotNoise.kuka_class())
 ev = build_events(rec.imu, rec.robot, rec.image_times, noise=RobotNoise.kuka_class())
 P0 = initial_covariance(1e-3, 0.05, 0.02, 0.1, 0.01)
+res = eskf(ev, initial_state(ev), P0, ImuNoise.xsens_mti())
 hlo = eskf.lower(ev, initial_state(ev), P0, ImuNoise.xsens_mti()).compile().as_text()
-print("SMALL_CALL" if "xla_cpu_small_call" in hlo else "THUNKS")
+hlo += rts_smoother.lower(res, ImuNoise.xsens_mti()).compile().as_text()
+print({0: "THUNKS", 2: "SMALL_CALL"}.get(hlo.count("xla_cpu_small_call"), "MIXED"))
 """
 
 
@@ -65,5 +67,5 @@ def test_opt_out_leaves_flags_alone(monkeypatch):
 
 
 @pytest.mark.parametrize(("opt", "expected"), [("1", "SMALL_CALL"), ("0", "THUNKS")])
-def test_filter_scan_compiles_to_one_kernel(opt, expected):
+def test_filter_and_smoother_scans_compile_to_one_kernel(opt, expected):
     assert _probe({"JAXTRAJ_XLA_SMALL_LOOPS": opt}) == expected

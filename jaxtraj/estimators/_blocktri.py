@@ -11,9 +11,7 @@ Rauch-Tung-Striebel smoother) come from a second backward scan::
     S_i = C_i^-T C_i^-1 + K_i S_{i+1} K_i^T,   K_i = C_i^-T M_i^T
 
 No dense (F s, F s) matrix is ever formed. The small (s <= 9) Cholesky factorisations and
-triangular solves are written out entry by entry instead of calling LAPACK: a loop that
-makes no library call can be compiled by XLA:CPU into one kernel (see ``jaxtraj/_xla.py``),
-which makes these scans several times faster than one LAPACK call per block.
+triangular solves are written out entry by entry (:mod:`jaxtraj._linalg`).
 """
 
 from __future__ import annotations
@@ -23,42 +21,15 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Float
 
+from .._linalg import cholesky_small as _cholesky
+from .._linalg import solve_triangular_small as _tri
+
 
 class BlockCholesky(eqx.Module):
     """Factor of a block-tridiagonal matrix: ``C`` (F, s, s) lower, ``M`` (F-1, s, s)."""
 
     C: Float[Array, "F s s"]
     M: Float[Array, "Fm1 s s"]
-
-
-def _cholesky(A: Float[Array, "s s"]) -> Float[Array, "s s"]:
-    """Lower Cholesky factor of a small SPD matrix, unrolled (NaN if not positive
-    definite, as LAPACK's result under JAX)."""
-    s = A.shape[-1]
-    L: list[list] = [[None] * s for _ in range(s)]
-    for j in range(s):
-        d = A[j, j] - sum((L[j][k] * L[j][k] for k in range(j)), start=jnp.zeros((), A.dtype))
-        L[j][j] = jnp.sqrt(d)
-        for i in range(j + 1, s):
-            off = A[i, j] - sum((L[i][k] * L[j][k] for k in range(j)), start=jnp.zeros((), A.dtype))
-            L[i][j] = off / L[j][j]
-    zero = jnp.zeros((), A.dtype)
-    return jnp.stack([jnp.stack([L[i][j] if j <= i else zero for j in range(s)]) for i in range(s)])
-
-
-def _tri(C: Float[Array, "s s"], B: Array, *, trans: int = 0) -> Array:
-    """Solve ``C x = B`` (``trans=0``) or ``C^T x = B`` (``trans=1``) for lower-triangular
-    ``C``; ``B`` is (s,) or (s, m). Unrolled substitution."""
-    s = C.shape[-1]
-    x: list = [None] * s
-    order = range(s) if trans == 0 else range(s - 1, -1, -1)
-    for i in order:
-        known = range(i) if trans == 0 else range(i + 1, s)
-        acc = B[i]
-        for k in known:
-            acc = acc - (C[i, k] if trans == 0 else C[k, i]) * x[k]
-        x[i] = acc / C[i, i]
-    return jnp.stack(x)
 
 
 def factor_forward(

@@ -1,0 +1,39 @@
+"""Small dense linear algebra written out entry by entry (matrices up to about 16x16).
+
+Inside a ``lax.scan`` a LAPACK call is a library call that XLA:CPU must dispatch on its
+own at every step. A loop that makes no such call can be compiled into one native kernel
+(see :mod:`jaxtraj._xla`), which for the small blocks of the smoothers and filters is
+several times faster. Results equal LAPACK's up to rounding; the unrolled code grows with
+the square (Cholesky) of the size, so keep these for small, static sizes.
+"""
+
+from __future__ import annotations
+
+import jax.numpy as jnp
+from jaxtyping import Array, Float
+
+__all__ = ["cholesky_small", "solve_triangular_small"]
+
+
+def cholesky_small(A: Float[Array, "s s"]) -> Float[Array, "s s"]:
+    """Lower Cholesky factor of a small SPD matrix, one column per step (NaN if not
+    positive definite, as LAPACK's result under JAX)."""
+    s = A.shape[-1]
+    rows = jnp.arange(s)
+    L = jnp.zeros_like(A)
+    for j in range(s):
+        v = A[:, j] - L @ L[j]  # columns >= j of L are still zero
+        d = jnp.sqrt(v[j])
+        L = L.at[:, j].set(jnp.where(rows > j, v / d, jnp.where(rows == j, d, 0.0)))
+    return L
+
+
+def solve_triangular_small(C: Float[Array, "s s"], B: Array, *, trans: int = 0) -> Array:
+    """Solve ``C x = B`` (``trans=0``) or ``C^T x = B`` (``trans=1``) for lower-triangular
+    ``C``; ``B`` is (s,) or (s, m). One row of ``x`` per step."""
+    s = C.shape[-1]
+    M = C if trans == 0 else C.T
+    x = jnp.zeros_like(B)
+    for i in range(s) if trans == 0 else range(s - 1, -1, -1):
+        x = x.at[i].set((B[i] - M[i] @ x) / M[i, i])  # unknown rows of x are still zero
+    return x
