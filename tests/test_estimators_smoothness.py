@@ -161,25 +161,13 @@ def test_start_prior_per_point_or_shared_pins_the_first_state(rng):
     mean = np.stack([s["X"][0], v0])
     cov = np.diag([1e-3**2] * 3 + [1e-2**2] * 3)
     uvs = np.stack([s["uv"], s["uv"]])
-    free = smooth_points(s["P"], uvs, s["times"], pixel_sigma=0.4, covariance=False)
-    fixed = smooth_points(
-        s["P"],
-        uvs,
-        s["times"],
-        pixel_sigma=0.4,
-        covariance=False,
-        start_mean=np.stack([mean, mean]),
-        start_cov=cov,
-    )
-    shared = smooth_points(
-        s["P"],
-        uvs,
-        s["times"],
-        pixel_sigma=0.4,
-        covariance=False,
-        start_mean=mean,
-        start_cov=cov,
-    )
+
+    def run(**start):
+        return smooth_points(s["P"], uvs, s["times"], pixel_sigma=0.4, covariance=False, **start)
+
+    free = run()
+    fixed = run(start_mean=np.stack([mean, mean]), start_cov=cov)
+    shared = run(start_mean=mean, start_cov=cov)
     np.testing.assert_array_equal(np.asarray(shared.points), np.asarray(fixed.points))
     e_free, e_fixed = rmse(free.points[0], s["X"]), rmse(fixed.points[0], s["X"])
     assert e_free > 0.3 and e_fixed < 0.8 * e_free
