@@ -1,10 +1,10 @@
-"""Small dense linear algebra written out entry by entry (matrices up to about 16x16).
+"""Small dense linear algebra written out step by step (matrices up to about 16x16).
 
 Inside a ``lax.scan`` a LAPACK call is a library call that XLA:CPU must dispatch on its
 own at every step. A loop that makes no such call can be compiled into one native kernel
 (see :mod:`jaxtraj._xla`), which for the small blocks of the smoothers and filters is
-several times faster. Results equal LAPACK's up to rounding; the unrolled code grows with
-the square (Cholesky) of the size, so keep these for small, static sizes.
+several times faster. Results equal LAPACK's up to rounding. The Python loops unroll into
+one step per column or row, so keep these for small, static sizes.
 """
 
 from __future__ import annotations
