@@ -11,7 +11,7 @@ Rauch-Tung-Striebel smoother) come from a second backward scan::
     S_i = C_i^-T C_i^-1 + K_i S_{i+1} K_i^T,   K_i = C_i^-T M_i^T
 
 No dense (F s, F s) matrix is ever formed. The small (s <= 9) Cholesky factorisations and
-triangular solves are written out entry by entry (:mod:`jaxtraj._linalg`).
+triangular solves make no LAPACK call (:mod:`jaxtraj._linalg`).
 """
 
 from __future__ import annotations
