@@ -432,8 +432,13 @@ def _smooth(
         z = jnp.maximum(jnp.abs(z), 0.1 * jnp.median(jnp.abs(z)) + jnp.finfo(dtype).tiny)
         return x, z, robust_weight(x[:, :3]), piv
 
-    for _ in range(2):
-        x, z, omega, pivot = linear_pass(q, z, omega)
+    # loops rather than unrolled Python: each solve is compiled once (compile time)
+    x, z, omega, pivot = jax.lax.fori_loop(
+        0,
+        2,
+        lambda _, c: linear_pass(q, c[1], c[2]),
+        (jnp.zeros((F, 3 * order), dtype), z, omega, jnp.zeros((), dtype)),
+    )
 
     def ubre(q, H, g, e, J, X0):
         """Unbiased risk ``RSS / sigma^2 + 2 edf - n``, edf and the solve at ``q``."""
@@ -455,15 +460,16 @@ def _smooth(
         if iterations == 0:
             x, z, omega, pivot = linear_pass(q, z, omega)
 
-    best = data_cost(x[:, :3]) + _prior_cost(x, A, Qinv, 1 / q, order, start)
-    for _ in range(iterations):
-        omega = robust_weight(x[:, :3])
-        H, g, _, _, _ = gn_blocks(x[:, :3], omega)
+    def gauss_newton_step(_, carry):
+        x, best, _ = carry
+        H, g, _, _, _ = gn_blocks(x[:, :3], robust_weight(x[:, :3]))
         x_new, _, pivot = _solve(H, g, A, Qinv, 1 / q, order, False, start)
         cost = data_cost(x_new[:, :3]) + _prior_cost(x_new, A, Qinv, 1 / q, order, start)
         better = (cost <= best) | ~jnp.isfinite(best)
-        x = jnp.where(better, x_new, x)
-        best = jnp.where(better, cost, best)
+        return jnp.where(better, x_new, x), jnp.where(better, cost, best), pivot
+
+    best = data_cost(x[:, :3]) + _prior_cost(x, A, Qinv, 1 / q, order, start)
+    x, best, pivot = jax.lax.fori_loop(0, iterations, gauss_newton_step, (x, best, pivot))
 
     omega = robust_weight(x[:, :3])
     if covariance:
