@@ -212,6 +212,28 @@ def test_marginal_likelihood_choice_near_oracle():
         assert 1e-3 < float(chosen.process_psd) < 1e2
 
 
+def test_chosen_q_gives_the_fixed_q_result_even_with_a_slow_camera():
+    # The choice of q linearises at a mid-grid solution; the result must then be the one
+    # for that q, not Gauss-Newton steps from the mid-grid depths (which, under a much
+    # stiffer prior, ended pixels off or NaN on slow-camera scenes).
+    rng = np.random.default_rng(3)
+    s = robot_scene(rng, F=60, mode="slow", noise=0.4)
+    uvs = np.stack([s["uv"], project_np(s["P"], s["X"] + 0.05) + rng.normal(size=(60, 2)) * 0.4])
+    chosen = smooth_points(s["P"], uvs, s["times"], pixel_sigma=0.4, covariance=False)
+    for i in range(2):
+        fixed = smooth_trajectory(
+            s["P"],
+            uvs[i],
+            s["times"],
+            pixel_sigma=0.4,
+            covariance=False,
+            process_psd=float(chosen.process_psd[i]),
+        )
+        assert int(chosen.status[i]) == int(fixed.status) == jt.Status.OK
+        np.testing.assert_allclose(chosen.points[i], fixed.points, atol=1e-6)
+        assert float(chosen.rms_px[i]) == pytest.approx(float(fixed.rms_px), rel=1e-3)
+
+
 def test_missing_frames_and_robust_loss(rng):
     s = robot_scene(rng, F=60, mode="random", noise=0.4)
     w = np.ones(60)

@@ -18,8 +18,10 @@ is the reprojection error ``sum_i w_i ||pi(P_i p_i) - uv_i||^2 / sigma^2``. We m
 
 starting (no initial guess) from the depth-weighted linear ray constraints of paper eq. 4,
 reweighted once by the recovered depths, then Gauss-Newton steps (IRLS for a robust
-``rho``). Every step is one block-tridiagonal solve of size (F, 3 order) in O(F) (see
-:mod:`._blocktri`); the posterior covariances are the smoother's (selected inversion).
+``rho``); when ``q`` is chosen, the linear solution is computed at a mid-grid ``q`` for the
+choice and again at the chosen one, so that the result is the fixed-``q`` result. Every
+step is one block-tridiagonal solve of size (F, 3 order) in O(F) (see :mod:`._blocktri`);
+the posterior covariances are the smoother's (selected inversion).
 The noise density ``q`` is in physical units (m^2 / s^(2 order - 1)), so a value tuned on
 one scene transfers to others; with ``process_psd=None`` it is chosen per trajectory over
 a log grid (one batched solve) by the marginal likelihood (``criterion="ml"``, the
@@ -419,8 +421,7 @@ def _smooth(
         q = jnp.sqrt(grid[0] * grid[-1])
     else:
         q = jnp.asarray(process_psd, dtype) * qscale
-    z = jnp.full(F, depth_guess, dtype)
-    omega = jnp.ones(F, dtype)
+    z0, omega0 = jnp.full(F, depth_guess, dtype), jnp.ones(F, dtype)
 
     def linear_pass(q, z, omega):
         ww = w * omega / (sigma2 * z * z)
@@ -432,13 +433,16 @@ def _smooth(
         z = jnp.maximum(jnp.abs(z), 0.1 * jnp.median(jnp.abs(z)) + jnp.finfo(dtype).tiny)
         return x, z, robust_weight(x[:, :3]), piv
 
-    # loops rather than unrolled Python: each solve is compiled once (compile time)
-    x, z, omega, pivot = jax.lax.fori_loop(
-        0,
-        2,
-        lambda _, c: linear_pass(q, c[1], c[2]),
-        (jnp.zeros((F, 3 * order), dtype), z, omega, jnp.zeros((), dtype)),
-    )
+    def linear_solution(q):
+        # a loop rather than unrolled Python: the solve is compiled once (compile time)
+        return jax.lax.fori_loop(
+            0,
+            2,
+            lambda _, c: linear_pass(q, c[1], c[2]),
+            (jnp.zeros((F, 3 * order), dtype), z0, omega0, jnp.zeros((), dtype)),
+        )
+
+    x, _, omega, pivot = linear_solution(q)
 
     def ubre(q, H, g, e, J, X0):
         """Unbiased risk ``RSS / sigma^2 + 2 edf - n``, edf and the solve at ``q``."""
@@ -457,8 +461,10 @@ def _smooth(
         if curve_only:
             return crit
         q = _argmin_log(grid, crit)
-        if iterations == 0:
-            x, z, omega, pivot = linear_pass(q, z, omega)
+        # again from the nominal depth at the chosen q: the depths of the first solution
+        # (q in the middle of the grid) can be far off where the camera moves slowly, and
+        # Gauss-Newton steps from there under a much stiffer prior did not always recover
+        x, _, omega, pivot = linear_solution(q)
 
     def gauss_newton_step(_, carry):
         x, best, _ = carry
