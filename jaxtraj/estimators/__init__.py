@@ -1,6 +1,7 @@
 """Estimators beyond the plain DCT least squares of the paper.
 
 * :mod:`.smoothness` - smoothness prior (trajectory filter / state-space smoother), no k.
+* :mod:`.filtering` - Kalman filter / RTS smoother from a known start (slow cameras).
 * :mod:`.select_k` - automatic k: cross-validation and conditioning-gain bound.
 * :mod:`.refine` - maximum-likelihood (robust) refinement of DCT coefficients.
 * :mod:`.covariance` - first-order covariance from pixel and camera-pose noise.
@@ -12,6 +13,8 @@
 from .covariance import ReconstructionCovariance as ReconstructionCovariance
 from .covariance import dct_covariance as dct_covariance
 from .covariance import points_covariance as points_covariance
+from .filtering import filter_points as filter_points
+from .filtering import filter_trajectory as filter_trajectory
 from .joint_pose import RigidTrajectory as RigidTrajectory
 from .joint_pose import fit_rigid_trajectory as fit_rigid_trajectory
 from .joint_pose import kabsch_per_frame as kabsch_per_frame
