@@ -32,9 +32,7 @@ print({0: "THUNKS", 2: "SMALL_CALL"}.get(hlo.count("xla_cpu_small_call"), "MIXED
 
 
 def _probe(env_update: dict[str, str]) -> str:
-    # no persistent compilation cache (tests/conftest.py): the probe tests what XLA compiles
-    drop = ("XLA_FLAGS", "JAX_COMPILATION_CACHE_DIR")
-    env = {k: v for k, v in os.environ.items() if k not in drop}
+    env = {k: v for k, v in os.environ.items() if k != "XLA_FLAGS"}
     env.update(env_update)
     out = subprocess.run(
         [sys.executable, "-c", _PROBE], env=env, capture_output=True, text=True, timeout=300
