@@ -36,6 +36,7 @@ sys.path.insert(0, str(ROOT))
 
 import jaxtraj as jt  # noqa: E402
 from jaxtraj.estimators import (  # noqa: E402
+    filter_points,
     fit_rigid_trajectory,
     refine_points,
     roughness_penalty,
@@ -58,6 +59,7 @@ FIXED_K = (6, 8, 10, 12)
 KS = tuple(range(4, 21, 2))
 START_COV = np.diag([0.05**2] * 3 + [0.2**2] * 3)  # Stone Soup's start prior (see below)
 PEER_QS = (0.003, 0.01, 0.03, 0.1, 0.3, 1.0, 3.0)  # process-noise grid [m^2/s^3]
+FILTER_RULES = ("cubature", "extended")
 RIGID_K = 40  # DCT vectors of the rigid motion (20 leaves 3 mm of truncation error at F = 120)
 
 
@@ -248,11 +250,28 @@ def smoother_errors(P, uv, times, sigma_px, Xs, q, starts=None):
     return point_err_mm(est.points, Xs)
 
 
+def filter_errors(P, uv, times, sigma_px, Xs, q, starts, rule):
+    """The jaxtraj Kalman filter + RTS smoother's error per point [mm] (same start prior
+    as Stone Soup's)."""
+    est = filter_points(
+        P,
+        uv,
+        times,
+        start_mean=starts,
+        start_cov=START_COV,
+        process_psd=q,
+        pixel_sigma=sigma_px,
+        rule=rule,
+    )
+    return point_err_mm(est.points, Xs)
+
+
 def tune_q(rng, args, source, mode, mocap):
     """Process noise of each smoother tuned as a tracking engineer would: the grid value
     with the least mean error on ``--tune-scenes`` scenes of the same kind, generated from
     their own random stream (never the test scenes). Stone Soup is tuned with its true
-    start; the jaxtraj smoother without and with the same start."""
+    start; the jaxtraj smoother without and with the same start, and the jaxtraj filter
+    with it."""
     errs: dict[str, list] = {}
     for _ in range(args.tune_scenes):
         times, X, P = scene(rng, args.frames, mode, args.noise, source, mocap)
@@ -269,6 +288,10 @@ def tune_q(rng, args, source, mode, mocap):
             errs.setdefault("smoother_start", []).append(
                 smoother_errors(P, uv, times, args.noise, Xs, q, starts).mean()
             )
+            for rule in FILTER_RULES:
+                errs.setdefault(f"filter_{rule}", []).append(
+                    filter_errors(P, uv, times, args.noise, Xs, q, starts, rule).mean()
+                )
     shape = (args.tune_scenes, len(PEER_QS))
     return {k: PEER_QS[int(np.argmin(np.reshape(v, shape).mean(0)))] for k, v in errs.items()}
 
@@ -297,6 +320,15 @@ def peer_rows(rng, P, uv, times, sigma_px, Xs, tuned):
             lambda u, st=starts, q=q_start: smoother_errors(P, u, times, sigma_px, Xs, q, st), uv
         )
         rows[f"smooth_tuned_q_{tag}"] = (e.mean(), dt / len(Xs))
+        for rule in FILTER_RULES:
+            q_f = tuned[f"filter_{rule}"]
+            e, dt = timed(
+                lambda u, st=starts, q=q_f, r=rule: filter_errors(
+                    P, u, times, sigma_px, Xs, q, st, r
+                ),
+                uv,
+            )
+            rows[f"filter_{rule}_{tag}"] = (e.mean(), dt / len(Xs))
     e, dt = timed(lambda u: smoother_errors(P, u, times, sigma_px, Xs, tuned["smoother"]), uv)
     rows["smooth_tuned_q"] = (e.mean(), dt / len(Xs))
     oracle = np.min([e for e, _ in per_q], axis=0).mean()
@@ -313,14 +345,20 @@ ESTIMATOR_COLUMNS = {
     "smoother (q per point)": "smooth_point_q",
     "rigid, known layout": "rigid_known_layout",
 }
-PEER_COLUMNS = {
-    "smoother, q per point (no start)": "smooth_point_q",
-    "smoother, tuned q (no start)": "smooth_tuned_q",
+PEER_COLUMNS = {  # Stone Soup and the jaxtraj estimators on the same points, exact start
+    "smoother, q per point, no start": "smooth_point_q",
+    "smoother, tuned q, no start": "smooth_tuned_q",
     "smoother, tuned q, true start": "smooth_tuned_q_true_start",
+    "filter (cubature), tuned q, true start": "filter_cubature_true_start",
+    "filter (extended), tuned q, true start": "filter_extended_true_start",
     "Stone Soup, tuned q, true start": "stonesoup_true_start",
-    "smoother, tuned q, drawn start": "smooth_tuned_q_prior_start",
-    "Stone Soup, tuned q, drawn start": "stonesoup_prior_start",
     "Stone Soup, oracle q, true start": "stonesoup_oracle_q",
+}
+DRAWN_COLUMNS = {  # the same with the start's mean drawn from the prior
+    "smoother, drawn start": "smooth_tuned_q_prior_start",
+    "filter (cubature), drawn start": "filter_cubature_prior_start",
+    "filter (extended), drawn start": "filter_extended_prior_start",
+    "Stone Soup, drawn start": "stonesoup_prior_start",
 }
 
 
@@ -340,23 +378,29 @@ def markdown(results) -> str:
                     v = min(row[f"dct_k{k}"]["err_mm"] for k in FIXED_K)
                 else:
                     v = row[key]["err_mm"] if key in row else float("nan")
-                cells.append(f"{v:.3g}")
+                cells.append(f"{v:.0f}" if v >= 1000 else f"{v:.3g}")
             name = f"{label[row['source']]}, {row['mode']}"
             lines.append(f"| {name} | " + " | ".join(cells) + " |")
         return "\n".join(lines)
 
     out = table(ESTIMATOR_COLUMNS)
     if "stonesoup_true_start" in results[0]:
-        out += "\n\n" + table(PEER_COLUMNS)
-        ms = lambda key: [r[key]["ms_per_traj"] for r in results]  # noqa: E731
-        ss, sm = np.array(ms("stonesoup_true_start")), np.array(ms("smooth_tuned_q_true_start"))
-        pp, ratio = np.array(ms("smooth_point_q")), ss / sm
-        out += (
-            f"\n\nper trajectory: Stone Soup {ss.min():.0f}-{ss.max():.0f} ms, smoother (fixed q)"
-            f" {sm.min():.2f}-{sm.max():.2f} ms, ratio {ratio.min():.0f}-{ratio.max():.0f}x;"
-            f" smoother (q per point) {pp.min():.2f}-{pp.max():.2f} ms,"
-            f" ratio {np.min(ss / pp):.0f}-{np.max(ss / pp):.0f}x"
-        )
+        out += "\n\n" + table(PEER_COLUMNS) + "\n\n" + table(DRAWN_COLUMNS) + "\n\nper trajectory:"
+        ms = lambda key: np.array([r[key]["ms_per_traj"] for r in results])  # noqa: E731
+        ss = ms("stonesoup_true_start")
+        out += f" Stone Soup {ss.min():.0f}-{ss.max():.0f} ms"
+        for name, key in (
+            ("smoother (fixed q)", "smooth_tuned_q_true_start"),
+            ("smoother (q per point)", "smooth_point_q"),
+            ("filter (cubature)", "filter_cubature_true_start"),
+            ("filter (extended)", "filter_extended_true_start"),
+        ):
+            if key in results[0]:
+                t, ratio = ms(key), ss / ms(key)
+                out += (
+                    f"; {name} {t.min():.2f}-{t.max():.2f} ms,"
+                    f" {ratio.min():.0f}-{ratio.max():.0f}x faster"
+                )
     return out
 
 

@@ -10,7 +10,8 @@ trajectory shrunk towards the camera projects to the same pixels with less accel
 so the mode is drawn towards the camera (measured: 0.4-0.8 m off on slow robot-cell
 scenes with a 5 cm start prior). A filter linearises each frame's projection once, at
 the state predicted from the frames before, and so carries the depth of its start
-forward; on those scenes it stays within centimetres. Where the camera moves enough to
+forward; on those scenes it stays about 10 cm off, as a sigma-point smoother of the
+same model from the tracking literature does. Where the camera moves enough to
 fix the depth (fast or random paths), both agree and the posterior-mode smoother needs no
 start at all.
 
