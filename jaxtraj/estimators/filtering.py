@@ -228,11 +228,8 @@ def filter_trajectory(
     jit-, vmap- and grad-compatible (see :func:`filter_points` for a batched driver).
 
     Args:
-        P: (F, 3, 4) projection matrices of undistorted cameras.
-        uv: (F, 2) pixels [px]; entries with weight 0 are ignored and may be NaN.
-        times: (F,) strictly increasing frame times [s].
-        weights: (F,) non-negative weights (relative inverse pixel variances); 0 marks a
-            missing detection. Default: all 1.
+        P, uv, times, weights: cameras, pixels [px], frame times [s] and weights (0: a
+            missing detection), as in :func:`.smooth_trajectory`.
         start_mean: (order, 3) state at ``times[0]`` before its pixel is used: position
             [m], velocity [m/s], ...
         start_cov: (3 order, 3 order) its covariance, in the order of ``Smoothed.states``
@@ -256,18 +253,21 @@ def filter_trajectory(
     _validate_options(order, process_psd, pixel_sigma, rule, gate)
     _validate_start(start_mean, start_cov, order)
     P, uv, times, weights = as_float(P, uv, times, weights)
-    dtype = P.dtype
     if weights is None:  # one compiled program with and without weights
-        weights = jnp.ones(uv.shape[0], dtype)
-    return _run_jit(
-        P,
-        uv,
-        times,
-        weights,
+        weights = jnp.ones(uv.shape[0], P.dtype)
+    opts = _traced_options(
+        P.dtype, order, process_psd, pixel_sigma, start_cov, rule, gate, smoother
+    )
+    return _run_jit(P, uv, times, weights, start_mean=jnp.asarray(start_mean, P.dtype), **opts)
+
+
+def _traced_options(dtype, order, process_psd, pixel_sigma, start_cov, rule, gate, smoother):
+    """Keyword arguments of :func:`_run`: numbers as arrays, so that a new value does not
+    compile again; ``order``, ``rule`` and ``smoother`` stay static."""
+    return dict(
         order=order,
         process_psd=jnp.asarray(process_psd, dtype),
         pixel_sigma=jnp.asarray(pixel_sigma, dtype),
-        start_mean=jnp.asarray(start_mean, dtype),
         start_cov=jnp.asarray(start_cov, dtype),
         rule=rule,
         gate=jnp.asarray(jnp.inf if gate is None else gate, dtype),
@@ -310,15 +310,8 @@ def filter_points(
     _validate_options(order, process_psd, pixel_sigma, rule, gate)
     P, uv, times, weights = as_float(P, uv, times, weights)
     dtype = P.dtype
-    opts = dict(  # numbers as arrays: a new value does not recompile
-        order=order,
-        process_psd=jnp.asarray(process_psd, dtype),
-        pixel_sigma=jnp.asarray(pixel_sigma, dtype),
-        start_cov=jnp.asarray(start_cov, dtype),
-        rule=rule,
-        gate=jnp.asarray(jnp.inf if gate is None else gate, dtype),
-        smoother=kwargs.get("smoother", True),
-    )
+    smoother = kwargs.get("smoother", True)
+    opts = _traced_options(dtype, order, process_psd, pixel_sigma, start_cov, rule, gate, smoother)
     w = jnp.ones(uv.shape[:2], dtype) if weights is None else weights
     mean = jnp.broadcast_to(jnp.asarray(start_mean, dtype), (N, order, 3))
     return _filter_points(P, uv, times, w, mean, opts)
