@@ -1,5 +1,5 @@
 """Automatic k: masked solves equal separate fits, gains equal the solver's, the CV
-choice is near the error-optimal k, batching and bad inputs."""
+choice is near the error-optimal k (random and fast cameras), batching and bad inputs."""
 
 from __future__ import annotations
 
@@ -57,6 +57,26 @@ def test_cv_choice_near_error_optimal_k():
     assert np.median(regrets) < 1.3, regrets
 
 
+def test_gain_weighted_rule_on_fast_cameras():
+    """Fast smooth cameras: the held-out error keeps falling with k while the 3D error
+    explodes; the gain-weighted rule stays near the best single k, the plain
+    reprojection rule does not."""
+    rng = np.random.default_rng(5)
+    errs, chosen, by_reprojection = [], [], []
+    for _ in range(6):  # F = 100: at F = 60 the gain rises so steeply that both agree
+        s = robot_scene(rng, F=100, mode="fast", noise=0.4)
+        e = [rmse(DCT(s["P"], s["uv"], jt.dct_basis(s["times"], k)), s["X"]) for k in KS]
+        sel = CV(s["P"], s["uv"], s["times"])
+        score = np.where(np.asarray(sel.gain) <= 100.0, np.asarray(sel.score), np.inf)
+        errs.append(e)
+        chosen.append(e[KS.index(int(sel.k))])
+        by_reprojection.append(e[int(np.argmin(score))])
+    best_fixed = np.min(np.mean(errs, axis=0))
+    assert np.mean(chosen) < 0.9 * np.mean(by_reprojection), (chosen, by_reprojection)
+    assert np.mean(chosen) < 1.2 * best_fixed, (chosen, best_fixed)
+    assert np.mean(by_reprojection) > 1.15 * best_fixed  # the failure the rule is for
+
+
 def test_vmap_equals_loop_and_degenerate_camera(rng):
     s = robot_scene(rng, F=F, mode="random", noise=0.3)
     uvs = np.stack([s["uv"], s["uv"] + rng.normal(size=(F, 2)) * 0.3])
@@ -81,5 +101,9 @@ def test_bad_inputs(rng):
         select_k_gain(s["P"], s["uv"], s["times"], ks=(2.5,))
     with pytest.raises(ValueError, match="folds"):
         select_k_cv(s["P"], s["uv"], s["times"], folds=1)
+    with pytest.raises(ValueError, match="rule"):
+        select_k_cv(s["P"], s["uv"], s["times"], rule="aic")
+    with pytest.raises(ValueError, match="healthy_gain"):
+        select_k_cv(s["P"], s["uv"], s["times"], healthy_gain=0.5)
     with pytest.raises(ValueError, match="times"):
         select_k_cv(s["P"], s["uv"], s["times"][:-1])
