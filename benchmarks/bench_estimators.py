@@ -117,6 +117,7 @@ def err_mm(est, X):
 def run(args):  # noqa: C901, RUF100
     rng = np.random.default_rng(args.seed)
     tune_rng = np.random.default_rng(args.seed + 1000)  # tuning scenes, never tested on
+    peer_rng = np.random.default_rng(args.seed + 2000)  # drawn starts: same scenes either way
     mocap = None
     bvh = ROOT.parent / "shared" / "data" / "cmu_bvh" / "scaled_131_01.bvh"
     sources = ["sim"] + (["mocap"] if bvh.exists() else [])
@@ -124,7 +125,12 @@ def run(args):  # noqa: C901, RUF100
         mocap = load_bvh_root(bvh)
     F, noise, N = args.frames, args.noise, args.points
     results = []
-    cv = jax.jit(jax.vmap(lambda P, u, t: select_k_cv(P, u, t, KS).k, in_axes=(None, 0, None)))
+    cv = {
+        rule: jax.jit(
+            jax.vmap(lambda P, u, t, r=rule: select_k_cv(P, u, t, KS, rule=r).k, (None, 0, None))
+        )
+        for rule in ("gain_weighted", "reprojection")
+    }
     for source in sources:
         for mode in MODES:
             acc: dict[str, list] = {}
@@ -139,9 +145,13 @@ def run(args):  # noqa: C901, RUF100
                     b = jt.dct_basis(times, k)
                     r, dt = timed(lambda u, b=b, P=P: jt.reconstruct_points(P, u, b).points, uv)
                     acc.setdefault(f"dct_k{k}", []).append((err_mm(r, Xs), dt / N))
-                ks, dt_cv = timed(lambda u, P=P, t=times: cv(P, u, t), uv)
-                k_cv = int(np.median(np.asarray(ks))) or KS[0]  # 0: no k admissible
-                b = jt.dct_basis(times, k_cv)
+                # one k per scene: the median of the points' choices (0: none admissible)
+                ks, dt_cv = timed(lambda u, P=P, t=times: cv["reprojection"](P, u, t), uv)
+                b = jt.dct_basis(times, int(np.median(np.asarray(ks))) or KS[0])
+                r = jt.reconstruct_points(P, uv, b).points
+                acc.setdefault("dct_cv_k_reprojection", []).append((err_mm(r, Xs), dt_cv / N))
+                ks, dt_cv = timed(lambda u, P=P, t=times: cv["gain_weighted"](P, u, t), uv)
+                b = jt.dct_basis(times, int(np.median(np.asarray(ks))) or KS[0])
                 lin = jt.reconstruct_points(P, uv, b)
                 acc.setdefault("dct_cv_k", []).append((err_mm(lin.points, Xs), dt_cv / N))
                 # refined where the linear solve is trustworthy (status OK): on a flat
@@ -192,7 +202,7 @@ def run(args):  # noqa: C901, RUF100
                 rig, dt_rig = timed(lambda u, P=P, m=model, t=times: rigid_points(P, u, m, t), uv)
                 acc.setdefault("rigid_known_layout", []).append((err_mm(rig, Xs), dt_rig / N))
                 if args.stonesoup:
-                    for name, val in peer_rows(rng, P, uv, times, noise, Xs, tuned).items():
+                    for name, val in peer_rows(peer_rng, P, uv, times, noise, Xs, tuned).items():
                         acc.setdefault(name, []).append(val)
             row = {"source": source, "mode": mode}
             for name, vals in acc.items():
@@ -338,7 +348,8 @@ def peer_rows(rng, P, uv, times, sigma_px, Xs, tuned):
 
 ESTIMATOR_COLUMNS = {
     "best fixed-k DCT (k = 6-12)": None,  # the best of FIXED_K per cell
-    "auto-k DCT (CV)": "dct_cv_k",
+    "auto-k DCT (CV, reprojection)": "dct_cv_k_reprojection",
+    "auto-k DCT (CV, gain-weighted)": "dct_cv_k",
     "CV + ML refinement": "dct_cv_k_refined",
     "regularised DCT": "dct_regularised",
     "smoother (one q per scene)": "smooth_scene_q",
