@@ -6,6 +6,7 @@ import pytest
 import jaxtraj as jt
 from jaxtraj.estimators import reconstruct_regularised, roughness_penalty, select_penalty_cv
 from jaxtraj.sim.scene import make_scene
+from tests.test_estimators_scenes import rmse, robot_scene
 
 
 @pytest.mark.parametrize("order", [1, 2, 3])
@@ -67,6 +68,25 @@ def test_regularised_beats_every_fixed_k(camera, speed):
     assert 0 < i < choice.grid.shape[0] - 1
 
 
+def test_gain_weighted_penalty_choice_on_a_fast_camera():
+    """On a fast, smooth camera path the weakest penalties reproject best but are far
+    off along the rays; weighting the held-out error by the gain picks a stiffer one."""
+    rng = np.random.default_rng(5)
+    for _ in range(2):  # the second fast scene of this stream (F = 80 as above: one compile)
+        s = robot_scene(rng, F=80, mode="fast", noise=0.4)
+    basis = jt.DCTBasis.from_times(s["times"], 60)
+    Phi, rough = basis(s["times"]), roughness_penalty(basis)
+    choice = select_penalty_cv(s["P"], s["uv"], basis, s["times"])
+    gain, cv = np.asarray(choice.gain), np.asarray(choice.cv_rms_px)
+    np.testing.assert_allclose(choice.criterion, cv * np.maximum(1.0, gain / 20.0), rtol=1e-12)
+    plain = choice.grid[int(np.argmin(cv))]  # rule="reprojection"
+    assert float(choice.lam) > float(plain)
+    chosen = jt.reconstruct(s["P"], s["uv"], Phi, penalty=choice.lam * rough)
+    weak = jt.reconstruct(s["P"], s["uv"], Phi, penalty=plain * rough)
+    assert rmse(chosen.points, s["X"]) < 0.6 * rmse(weak.points, s["X"])
+    assert float(chosen.gain) == pytest.approx(float(gain[int(np.argmin(choice.criterion))]))
+
+
 def test_bad_input(rng):
     s = make_scene(jax.random.PRNGKey(1), n_frames=30)
     Phi = jt.dct_basis(s.times, 6)
@@ -80,6 +100,8 @@ def test_bad_input(rng):
         select_penalty_cv(s.P, s.uv, jt.DCTBasis.from_times(s.times, 6), s.times, folds=1)
     with pytest.raises(ValueError, match="times"):
         select_penalty_cv(s.P, s.uv, jt.DCTBasis.from_times(s.times, 6), s.times[:-1])
+    with pytest.raises(ValueError, match="rule"):
+        select_penalty_cv(s.P, s.uv, jt.DCTBasis.from_times(s.times, 6), s.times, rule="gcv")
 
 
 def test_batched_points_with_penalty_equal_loop():

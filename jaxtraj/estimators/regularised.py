@@ -9,7 +9,10 @@ because the cosines are orthogonal on the span. Adding ``lam`` times this to the
 squares (``penalty = lam * roughness_penalty(basis, m)`` in :func:`jaxtraj.reconstruct`)
 lets k be large - up to the number of frames - without the ill-conditioning of a large
 unregularised basis: the data decide how much high-frequency motion to keep. ``lam`` is
-chosen by K-fold cross-validation on held-out reprojection error, batched over a grid.
+chosen by K-fold cross-validation on held-out reprojection error, batched over a grid,
+weighted by the conditioning gain beyond a healthy value as in
+:func:`jaxtraj.estimators.select_k_cv` (a weak penalty on a fast, smooth camera path
+reprojects well and is still far off along the rays).
 """
 
 from __future__ import annotations
@@ -23,6 +26,7 @@ from jaxtyping import Array, ArrayLike, Float
 from .._checks import check_shape
 from ..basis import DCTBasis
 from ..solve import Reconstruction, _reprojection_rms, reconstruct
+from .select_k import RULES
 
 __all__ = ["PenaltyChoice", "reconstruct_regularised", "roughness_penalty", "select_penalty_cv"]
 
@@ -41,12 +45,15 @@ def roughness_penalty(basis: DCTBasis, order: int = 2) -> Float[Array, " k"]:
 
 
 class PenaltyChoice(eqx.Module):
-    """Cross-validation of the penalty weight: the chosen ``lam``, the grid and the mean
-    held-out reprojection RMS [px] at each grid value."""
+    """Cross-validation of the penalty weight: the chosen ``lam``, the grid, the mean
+    held-out reprojection RMS [px], the conditioning gain on all frames and the
+    minimised criterion at each grid value."""
 
     lam: Float[Array, ""]
     grid: Float[Array, " G"]
     cv_rms_px: Float[Array, " G"]
+    gain: Float[Array, " G"]
+    criterion: Float[Array, " G"]
 
 
 def _fold_masks(num_frames: int, folds: int) -> np.ndarray:
@@ -65,16 +72,26 @@ def select_penalty_cv(
     order: int = 2,
     grid: Float[ArrayLike, " G"] | None = None,
     folds: int = 5,
+    rule: str = "gain_weighted",
+    healthy_gain: float = 20.0,
 ) -> PenaltyChoice:
     """Choose ``lam`` by K-fold cross-validation on held-out reprojection error.
 
-    Every (fold, grid value) pair is one batched solve (vmapped); the chosen value
-    minimises the mean held-out RMS. The default grid spans 1e-4 to 1e10 (in units of
-    squared pixel-algebraic residual per unit roughness) logarithmically.
+    Every (fold, grid value) pair is one batched solve (vmapped). ``rule="reprojection"``
+    picks the value with the smallest mean held-out RMS ``e``; ``rule="gain_weighted"``
+    (default) the smallest ``e * max(1, gain / healthy_gain)``, with the conditioning gain
+    of the penalised solve on all frames (the rule of
+    :func:`jaxtraj.estimators.select_k_cv`, on the RMS instead of the mean square). The
+    default grid spans 1e-4 to 1e10 (in units of squared pixel-algebraic residual per
+    unit roughness) logarithmically.
     """
     check_shape("times", times, (np.shape(P)[0],), "one timestamp per frame of P")
     if folds < 2:
         raise ValueError(f"folds: expected >= 2, got {folds}")
+    if rule not in RULES:
+        raise ValueError(f"rule: expected one of {RULES}, got {rule!r}")
+    if not (np.ndim(healthy_gain) == 0 and healthy_gain >= 1):
+        raise ValueError(f"healthy_gain: expected a number >= 1, got {healthy_gain!r}")
     F = np.shape(P)[0]
     dtype = jnp.result_type(jnp.asarray(P).dtype, jnp.float32)
     grid = jnp.logspace(-4, 10, 15, dtype=dtype) if grid is None else jnp.asarray(grid, dtype)
@@ -85,11 +102,12 @@ def select_penalty_cv(
     held = jnp.asarray(_fold_masks(F, folds))
     P = jnp.asarray(P, dtype)
     uv = jnp.where(w[:, None] > 0, jnp.asarray(uv, dtype), 0.0)
-    return _cv(P, uv, Phi, w, rough, grid, held)
+    healthy = healthy_gain if rule == "gain_weighted" else None
+    return _cv(P, uv, Phi, w, rough, grid, held, healthy)
 
 
 @eqx.filter_jit
-def _cv(P, uv, Phi, w, rough, grid, held):
+def _cv(P, uv, Phi, w, rough, grid, held, healthy_gain):
     def held_out_rms(lam, mask):
         train = jnp.where(mask, 0.0, w)
         res = reconstruct(P, uv, Phi, train, penalty=lam * rough, diagnostics=False)
@@ -97,7 +115,12 @@ def _cv(P, uv, Phi, w, rough, grid, held):
 
     per = jax.vmap(lambda lam: jax.vmap(lambda m: held_out_rms(lam, m))(held))(grid)
     score = jnp.mean(per, axis=1)
-    return PenaltyChoice(lam=grid[jnp.argmin(score)], grid=grid, cv_rms_px=score)
+    gain = jax.vmap(lambda lam: reconstruct(P, uv, Phi, w, penalty=lam * rough).gain)(grid)
+    crit = score if healthy_gain is None else score * jnp.maximum(1.0, gain / healthy_gain)
+    crit = jnp.where(jnp.isfinite(crit), crit, jnp.inf)
+    return PenaltyChoice(
+        lam=grid[jnp.argmin(crit)], grid=grid, cv_rms_px=score, gain=gain, criterion=crit
+    )
 
 
 def reconstruct_regularised(
@@ -110,9 +133,11 @@ def reconstruct_regularised(
     order: int = 2,
     lam: float | None = None,
     folds: int = 5,
+    rule: str = "gain_weighted",
 ) -> tuple[Reconstruction, DCTBasis, PenaltyChoice | None]:
     """Regularised DCT reconstruction: a generous k (default ``min(F, 60)``) with a
-    roughness penalty whose weight is chosen by cross-validation unless ``lam`` is given.
+    roughness penalty whose weight is chosen by cross-validation (``rule``: see
+    :func:`select_penalty_cv`) unless ``lam`` is given.
 
     Returns the :class:`~jaxtraj.Reconstruction`, the basis (evaluate it at other times
     for velocity or prediction) and the cross-validation record (None if ``lam`` given).
@@ -122,7 +147,9 @@ def reconstruct_regularised(
     basis = DCTBasis.from_times(times, k)
     choice = None
     if lam is None:
-        choice = select_penalty_cv(P, uv, basis, times, weights, order=order, folds=folds)
+        choice = select_penalty_cv(
+            P, uv, basis, times, weights, order=order, folds=folds, rule=rule
+        )
         lam = choice.lam
     pen = lam * roughness_penalty(basis, order)
     res = reconstruct(P, uv, basis(jnp.asarray(times)), weights, penalty=pen)
