@@ -3,11 +3,18 @@
 from __future__ import annotations
 
 import os
+import shutil
+from collections.abc import Callable
 from pathlib import Path
 
 import jax
 import numpy as np
 import pytest
+
+try:
+    import fcntl
+except ImportError:  # not POSIX: every worker builds its own copy
+    fcntl = None
 
 jax.config.update("jax_enable_x64", True)
 
@@ -33,3 +40,33 @@ def shared_data() -> Path:
 @pytest.fixture
 def rng() -> np.random.Generator:
     return np.random.default_rng(20261123)
+
+
+@pytest.fixture(scope="session")
+def build_once(tmp_path_factory) -> Callable[[str, Callable[[Path], None]], Path]:
+    """``build_once(name, build)``: a folder filled by ``build(folder)`` once per session.
+
+    Under pytest-xdist the workers share one build: the first worker to ask builds it under
+    a file lock, the others wait for it and reuse it (simulating a recording and compiling
+    the pipeline take minutes). A build that raised is redone by the next worker to ask.
+    Tests must treat the folder as read-only (copy it before changing it).
+    """
+
+    def get(name: str, build: Callable[[Path], None]) -> Path:
+        if fcntl is None or not os.environ.get("PYTEST_XDIST_WORKER"):
+            folder = tmp_path_factory.mktemp(name)
+            build(folder)
+            return folder
+        root = tmp_path_factory.getbasetemp().parent / f"{name}_shared"
+        root.mkdir(exist_ok=True)
+        folder = root / "data"
+        with open(root / "lock", "w") as lock:
+            fcntl.flock(lock, fcntl.LOCK_EX)
+            if not (root / "done").exists():
+                shutil.rmtree(folder, ignore_errors=True)
+                folder.mkdir()
+                build(folder)
+                (root / "done").touch()
+        return folder
+
+    return get

@@ -8,7 +8,6 @@ is built per module and copied into each test before it is changed.
 from __future__ import annotations
 
 import json
-import os
 import pickle
 import shutil
 import subprocess
@@ -24,11 +23,6 @@ from jaxtraj.io import read_tum
 from jaxtraj.io.formats import read_poses
 from jaxtraj.pipeline.steps import step_simulate
 
-try:
-    import fcntl
-except ImportError:  # not POSIX: every worker builds its own recording
-    fcntl = None
-
 FRAMES, DURATION, SEED = 12, 2.0, 3
 BLANK_FRAME = 5
 
@@ -42,7 +36,7 @@ SUBCOMMAND_OPTIONS = {
 }
 
 
-def _build(root: Path) -> Path:
+def _build(root: Path) -> None:
     """Simulate, calibrate and fuse a small recording in ``root / "rec"``; pickle its cell."""
     folder = root / "rec"
     cells = []
@@ -60,28 +54,18 @@ def _build(root: Path) -> Path:
     assert main(["fuse", str(folder)]) == EXIT_OK
     assert (folder / "results" / "fusion.json").is_file()
     (root / "cell.pkl").write_bytes(pickle.dumps(cells[0]))
-    (root / "done").touch()
-    return folder
 
 
 @pytest.fixture(scope="module")
-def built(tmp_path_factory):
+def built(build_once):
     """A simulated recording after ``calibrate`` and ``fuse``, and its simulated cell.
 
-    Returns ``(folder, cell)``; tests copy the folder (never change it). Under
-    pytest-xdist the workers share one build (the first builds it under a file lock), as
-    simulating and compiling the fusion take most of this file's time.
+    Returns ``(folder, cell)``; tests copy the folder (never change it). The workers of
+    pytest-xdist share one build, as simulating and compiling the fusion take most of this
+    file's time.
     """
-    if fcntl is None or not os.environ.get("PYTEST_XDIST_WORKER"):
-        root = tmp_path_factory.mktemp("cli_pipeline")
-        folder = _build(root)
-    else:
-        root = tmp_path_factory.getbasetemp().parent / "cli_pipeline_shared"
-        root.mkdir(exist_ok=True)
-        with open(root / "lock", "w") as lock:
-            fcntl.flock(lock, fcntl.LOCK_EX)
-            folder = root / "rec" if (root / "done").exists() else _build(root)
-    return folder, pickle.loads((root / "cell.pkl").read_bytes())
+    root = build_once("cli_pipeline", _build)
+    return root / "rec", pickle.loads((root / "cell.pkl").read_bytes())
 
 
 @pytest.fixture

@@ -17,11 +17,10 @@ from jaxtraj.pipeline.evaluate import quat_to_matrix, rotation_error_deg
 SIZE = ["--frames", "40", "--duration", "4", "--seed", "5"]
 
 
-@pytest.fixture(scope="module")
-def run(tmp_path_factory):
-    rec = tmp_path_factory.mktemp("e2e") / "recording"
+def _build(folder):
+    """Run every step on a new recording in ``folder / "recording"``; save the exit codes."""
     here = os.getcwd()
-    os.chdir(rec.parent)  # relative paths, as a user types them
+    os.chdir(folder)  # relative paths, as a user types them
     try:
         codes = [
             main(["--quiet", "simulate", "recording", "--kuka", *SIZE]),
@@ -32,7 +31,14 @@ def run(tmp_path_factory):
         ]
     finally:
         os.chdir(here)
-    return rec, codes
+    (folder / "codes.json").write_text(json.dumps(codes))
+
+
+@pytest.fixture(scope="module")
+def run(build_once):
+    """The recording after every step, and the steps' exit codes (one run per session)."""
+    folder = build_once("e2e", _build)
+    return folder / "recording", json.loads((folder / "codes.json").read_text())
 
 
 def test_every_step_succeeds(run):
