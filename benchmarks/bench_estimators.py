@@ -14,6 +14,10 @@ compared with the jaxtraj smoother on the same points: each smoother's process n
 tuned on separate scenes of the same kind (by their true error), and both get the same
 start prior (the true first state, or one drawn from the prior); see :func:`peer_rows`.
 
+``--paired`` runs only the filter against Stone Soup, point by point on the same scenes,
+and reports the ratio of their errors with a 95 % confidence interval (see
+:func:`paired`).
+
 Run: ``python benchmarks/bench_estimators.py [--scenes 6] [--points 8] [--stonesoup]
 [--tune-scenes 1] [--out results.json]``; ``--markdown results.json`` reprints the tables.
 """
@@ -346,6 +350,77 @@ def peer_rows(rng, P, uv, times, sigma_px, Xs, tuned):
     return rows
 
 
+def paired(args):
+    """The jaxtraj filter against Stone Soup on the same points, same start, each with its
+    q tuned as in :func:`tune_q`: per cell and start, the geometric mean of the per-point
+    error ratios (filter / Stone Soup) with a 95 % confidence interval (normal
+    approximation on the log ratios) and the share of points where the filter is closer.
+    Returns the rows and a markdown table."""
+    rng = np.random.default_rng(args.seed)
+    tune_rng = np.random.default_rng(args.seed + 1000)
+    peer_rng = np.random.default_rng(args.seed + 2000)
+    bvh = ROOT.parent / "shared" / "data" / "cmu_bvh" / "scaled_131_01.bvh"
+    mocap = load_bvh_root(bvh) if bvh.exists() else None
+    sources = ["sim"] + (["mocap"] if mocap is not None else [])
+    F, noise, N = args.frames, args.noise, args.points
+    rows = []
+    for source in sources:
+        for mode in MODES:
+            tuned = tune_q(tune_rng, args, source, mode, mocap)
+            errs: dict[str, list] = {}
+            for _ in range(args.scenes):
+                times, X, P = scene(rng, F, mode, noise, source, mocap)
+                Xs = points_around(rng, X, N)
+                uv = np.stack([project_np(P, x) for x in Xs]) + noise * rng.normal(size=(N, F, 2))
+                exact = true_start(Xs, times)
+                sd = np.sqrt(np.diag(START_COV)).reshape(2, 3)
+                drawn = exact + peer_rng.normal(size=exact.shape) * sd
+                for tag, st in (("true start", exact), ("drawn start", drawn)):
+                    q = tuned["stonesoup"]
+                    e, _ = stonesoup_errors(P, uv, times, noise, Xs, q, st)
+                    errs.setdefault(("Stone Soup", tag), []).append(e)
+                    for rule in FILTER_RULES:
+                        q = tuned[f"filter_{rule}"]
+                        e = filter_errors(P, uv, times, noise, Xs, q, st, rule)
+                        errs.setdefault((f"filter ({rule})", tag), []).append(e)
+            e = {key: np.concatenate(v) for key, v in errs.items()}
+            for tag in ("true start", "drawn start"):
+                ss = e[("Stone Soup", tag)]
+                for rule in FILTER_RULES:
+                    ours = e[(f"filter ({rule})", tag)]
+                    lr = np.log(ours / ss)
+                    half = 1.96 * lr.std(ddof=1) / np.sqrt(lr.size)
+                    row = dict(
+                        source=source,
+                        mode=mode,
+                        start=tag,
+                        rule=rule,
+                        points=int(lr.size),
+                        filter_mm=float(ours.mean()),
+                        stonesoup_mm=float(ss.mean()),
+                        ratio=float(np.exp(lr.mean())),
+                        ratio_lo=float(np.exp(lr.mean() - half)),
+                        ratio_hi=float(np.exp(lr.mean() + half)),
+                        filter_closer=float(np.mean(ours < ss)),
+                    )
+                    rows.append(row)
+                    print(row, flush=True)
+    lines = [
+        "| scene / camera | start | filter rule | filter [mm] | Stone Soup [mm] |"
+        " ratio (95 % CI) | filter closer |",
+        "|---|---|---|---|---|---|---|",
+    ]
+    label = {"sim": "simulated", "mocap": "motion capture"}
+    for r in rows:
+        lines.append(
+            f"| {label[r['source']]}, {r['mode']} | {r['start']} | {r['rule']} |"
+            f" {r['filter_mm']:.3g} | {r['stonesoup_mm']:.3g} |"
+            f" {r['ratio']:.3f} ({r['ratio_lo']:.3f}-{r['ratio_hi']:.3f}) |"
+            f" {100 * r['filter_closer']:.0f} % |"
+        )
+    return rows, "\n".join(lines)
+
+
 ESTIMATOR_COLUMNS = {
     "best fixed-k DCT (k = 6-12)": None,  # the best of FIXED_K per cell
     "auto-k DCT (CV, reprojection)": "dct_cv_k_reprojection",
@@ -423,6 +498,7 @@ def main():
     p.add_argument("--noise", type=float, default=0.4)
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--stonesoup", action="store_true")
+    p.add_argument("--paired", action="store_true", help="only the filter vs Stone Soup")
     p.add_argument("--tune-scenes", type=int, default=1, help="scenes per cell to tune q on")
     p.add_argument("--out", type=Path, default=None)
     p.add_argument("--markdown", type=Path, default=None, help="print the tables of a JSON")
@@ -431,6 +507,12 @@ def main():
         print(markdown(json.loads(args.markdown.read_text())))
         return
     sys.path.insert(0, str(Path(__file__).parent))
+    if args.paired:
+        rows, table = paired(args)
+        print(table)
+        if args.out:
+            args.out.write_text(json.dumps(rows, indent=1))
+        return
     results = run(args)
     print(markdown(results))
     if args.out:
