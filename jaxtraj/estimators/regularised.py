@@ -26,7 +26,7 @@ from jaxtyping import Array, ArrayLike, Float
 from .._checks import check_shape
 from ..basis import DCTBasis
 from ..solve import Reconstruction, _reprojection_rms, reconstruct
-from .select_k import RULES
+from .select_k import check_rule
 
 __all__ = ["PenaltyChoice", "reconstruct_regularised", "roughness_penalty", "select_penalty_cv"]
 
@@ -88,10 +88,7 @@ def select_penalty_cv(
     check_shape("times", times, (np.shape(P)[0],), "one timestamp per frame of P")
     if folds < 2:
         raise ValueError(f"folds: expected >= 2, got {folds}")
-    if rule not in RULES:
-        raise ValueError(f"rule: expected one of {RULES}, got {rule!r}")
-    if not (np.ndim(healthy_gain) == 0 and healthy_gain >= 1):
-        raise ValueError(f"healthy_gain: expected a number >= 1, got {healthy_gain!r}")
+    check_rule(rule, healthy_gain)
     F = np.shape(P)[0]
     dtype = jnp.result_type(jnp.asarray(P).dtype, jnp.float32)
     grid = jnp.logspace(-4, 10, 15, dtype=dtype) if grid is None else jnp.asarray(grid, dtype)
