@@ -18,6 +18,12 @@ except ImportError:  # not POSIX: every worker builds its own copy
 
 jax.config.update("jax_enable_x64", True)
 
+# One BLAS thread per process (also for notebook kernels and subprocesses): pytest-xdist
+# already runs a worker per core, and OpenBLAS threads that wait for a busy core spin (a
+# 480 x 36 QR inside a jit-compiled solve took 350 ms instead of 0.5 ms on a loaded machine).
+# SciPy's OpenBLAS, which JAX's LAPACK calls use, is loaded later and reads this.
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+
 #: ``../shared/data`` beside the checkout (present in CI, absent in users' clones).
 SHARED_DATA = Path(
     os.environ.get("JAXTRAJ_SHARED_DATA", Path(__file__).resolve().parents[2] / "shared" / "data")
