@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import os
 import shutil
+import tempfile
 from collections.abc import Callable
 from pathlib import Path
 
@@ -17,6 +18,34 @@ except ImportError:  # not POSIX: every worker builds its own copy
     fcntl = None
 
 jax.config.update("jax_enable_x64", True)
+
+# One persistent compilation cache per test session, shared by the xdist workers, notebook
+# kernels and CLI subprocesses (they inherit the environment), so a program compiled by one
+# process is loaded by the others instead of compiled again. The xdist controller imports this
+# file before it starts the workers, so they inherit its folder; it is deleted when the session
+# ends (pytest_unconfigure), so every run starts cold, as CI must. The cache key includes the
+# program, the compile options and the jax/jaxlib version, so an edited function can never load
+# a stale executable. A folder set by the user (JAX_COMPILATION_CACHE_DIR) is used as it is.
+_SESSION_CACHE: str | None = None
+if "JAX_COMPILATION_CACHE_DIR" not in os.environ:
+    _SESSION_CACHE = tempfile.mkdtemp(prefix="jaxtraj-test-jax-cache-")
+    os.environ["JAX_COMPILATION_CACHE_DIR"] = _SESSION_CACHE
+    # Cache every program: the defaults skip those that compile in under a second, which on
+    # CPU are most of them.
+    os.environ.setdefault("JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS", "0")
+    os.environ.setdefault("JAX_PERSISTENT_CACHE_MIN_ENTRY_SIZE_BYTES", "-1")
+    # jax reads these variables when it is imported, which may have been before this file ran
+    # (the workers and subprocesses import it after, with the variables set).
+    jax.config.update("jax_compilation_cache_dir", _SESSION_CACHE)
+    jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
+    jax.config.update("jax_persistent_cache_min_entry_size_bytes", -1)
+
+
+def pytest_unconfigure(config):
+    """Delete this session's compilation cache (only in the process that created it)."""
+    if _SESSION_CACHE is not None:
+        shutil.rmtree(_SESSION_CACHE, ignore_errors=True)
+
 
 # One BLAS thread per process (also for notebook kernels and subprocesses): pytest-xdist
 # already runs a worker per core, and OpenBLAS threads that wait for a busy core spin (a
