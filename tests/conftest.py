@@ -41,6 +41,12 @@ if "JAX_COMPILATION_CACHE_DIR" not in os.environ:
     jax.config.update("jax_persistent_cache_min_entry_size_bytes", -1)
 
 
+# jaxtraj sets its XLA_FLAGS when imported, which takes effect only before the process first
+# compiles. Import it here, before any test module runs, so every executable this process puts
+# in the shared cache was compiled with the flags that its cache key records.
+import jaxtraj  # noqa: E402, F401
+
+
 def pytest_unconfigure(config):
     """Delete this session's compilation cache (only in the process that created it)."""
     if _SESSION_CACHE is not None:

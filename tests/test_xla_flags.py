@@ -32,7 +32,10 @@ print({0: "THUNKS", 2: "SMALL_CALL"}.get(hlo.count("xla_cpu_small_call"), "MIXED
 
 
 def _probe(env_update: dict[str, str]) -> str:
-    env = {k: v for k, v in os.environ.items() if k != "XLA_FLAGS"}
+    # without the test session's compilation cache: the probe checks what XLA emits
+    env = {
+        k: v for k, v in os.environ.items() if k not in ("XLA_FLAGS", "JAX_COMPILATION_CACHE_DIR")
+    }
     env.update(env_update)
     out = subprocess.run(
         [sys.executable, "-c", _PROBE], env=env, capture_output=True, text=True, timeout=300
