@@ -244,10 +244,11 @@ def build_parser() -> argparse.ArgumentParser:
     )
     demo.add_argument(
         "--method",
-        choices=("dct", "regularised", "smoother"),
+        choices=("dct", "auto-k", "regularised", "smoother"),
         default="dct",
-        help="--paper only: 'dct' (the paper's plain DCT, fixed k), 'regularised' (DCT with "
-        "a cross-validated roughness penalty) or 'smoother' (smoothness prior, no basis)",
+        help="--paper only: 'dct' (the paper's plain DCT, fixed k), 'auto-k' (k chosen by "
+        "cross-validation), 'regularised' (DCT with a cross-validated roughness penalty) or "
+        "'smoother' (smoothness prior, no basis)",
     )
     demo.add_argument("--k", type=_positive_int, default=None, help="--paper --method dct: k")
     demo.add_argument(

@@ -54,6 +54,19 @@ def _estimate(method: str, P, uv, times, weights, k: int, noise: float):
     if method == "dct":
         res = reconstruct_points(P, uv, DCTBasis.from_times(times, k)(times), weights)
         return res.points, res.rms_px, res.gain, res.status == Status.OK, f"DCT k={k}"
+    if method == "auto-k":
+        from .estimators import select_k_cv
+
+        # candidates up to 60 (as for the regularised DCT) and at most what every fold's
+        # training frames (4/5 of them) can fit
+        k_max = max(4, min(60, (8 * times.shape[0]) // 15))
+        ks = tuple(range(4, k_max + 1, 2))
+        choose = jax.vmap(lambda u, w: select_k_cv(P, u, times, ks, w).k)
+        chosen = np.sort(np.asarray(choose(uv, weights)))
+        k_auto = int(chosen[(chosen.size - 1) // 2])  # the (lower) median over the tracks
+        res = reconstruct_points(P, uv, DCTBasis.from_times(times, k_auto)(times), weights)
+        label = f"DCT k={k_auto} (cross-validated, gain-weighted)"
+        return res.points, res.rms_px, res.gain, res.status == Status.OK, label
     if method == "regularised":
         from .estimators import roughness_penalty, select_penalty_cv
 
