@@ -28,8 +28,10 @@ mean (``"extended"``). The dynamics are linear, so prediction and smoothing are 
 Which rule: the cubature rule's pixel covariance carries the projection's curvature
 across the predicted spread, so it updates more cautiously; that pays where the start is
 rough and the camera fast (10-15 % closer than the first-order rule with a start drawn
-from its prior), while the first-order rule is 3-7 % closer where the start is exact or
-the camera slow (measured point by point in ``benchmarks/bench_estimators.py --paired``).
+from its prior), while the first-order rule is 3-7 % closer with an exact start on random
+cameras and with the motion-capture slow and smooth cameras, but 4-5 % behind with the
+simulated slow ones (measured point by point in ``benchmarks/bench_estimators.py
+--paired``).
 Two alternatives were measured on the same scenes and not adopted: iterating each
 frame's update at its updated state (the iterated extended / posterior-linearisation
 update) converges to each frame's posterior mode and inherits the mode's drift towards
