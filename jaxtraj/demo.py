@@ -61,7 +61,7 @@ def _estimate(method: str, P, uv, times, weights, k: int, noise: float):
         # training frames (4/5 of them) can fit
         k_max = max(4, min(60, (8 * times.shape[0]) // 15))
         ks = tuple(range(4, k_max + 1, 2))
-        choose = jax.vmap(lambda u, w: select_k_cv(P, u, times, ks, w).k)
+        choose = jax.jit(jax.vmap(lambda u, w: select_k_cv(P, u, times, ks, w).k))
         chosen = np.sort(np.asarray(choose(uv, weights)))
         k_auto = int(chosen[(chosen.size - 1) // 2])  # the (lower) median over the tracks
         res = reconstruct_points(P, uv, DCTBasis.from_times(times, k_auto)(times), weights)

@@ -53,28 +53,35 @@ def test_console_script_help():
     assert "--frames" in proc.stdout and "--noise" in proc.stdout
 
 
+PAPER_SMALL = ["demo", "--paper", "--frames", "60", "--seed", "2", "--no-plots"]
+
+
+@pytest.fixture(scope="module")
+def paper_dct_summary(tmp_path_factory):
+    """summary.json of the paper's method (k = 12) on the small scene the estimators beat."""
+    out = tmp_path_factory.mktemp("dct")
+    assert main([*PAPER_SMALL, "--k", "12", "--out", str(out)]) == EXIT_OK
+    return json.loads((out / "summary.json").read_text())
+
+
 @pytest.mark.parametrize("method", ["regularised", "smoother"])
-def test_demo_better_estimators_beat_the_paper_method(tmp_path, method):
-    dct, other = tmp_path / "dct", tmp_path / method
-    base = ["demo", "--paper", "--frames", "60", "--seed", "2", "--no-plots"]
-    assert main([*base, "--k", "12", "--out", str(dct)]) == EXIT_OK
-    assert main([*base, "--method", method, "--out", str(other)]) == EXIT_OK
-    a = json.loads((dct / "summary.json").read_text())["point"]
+def test_demo_better_estimators_beat_the_paper_method(tmp_path, method, paper_dct_summary):
+    other = tmp_path / method
+    assert main([*PAPER_SMALL, "--method", method, "--out", str(other)]) == EXIT_OK
+    a = paper_dct_summary["point"]
     b = json.loads((other / "summary.json").read_text())
     assert b["method"] == method and b["point"]["ok"]
     assert b["point"]["mean_error_mm"] < a["mean_error_mm"]
     assert b["point"]["max_error_mm"] < a["max_error_mm"]
 
 
-def test_demo_auto_k_beats_the_paper_k_on_the_mean(tmp_path):
+def test_demo_auto_k_beats_the_paper_k_on_the_mean(tmp_path, paper_dct_summary):
     # k chosen by cross-validation (gain-weighted) against the paper's fixed k: lower mean
     # error for the point and for the rigid body's position (max errors at the ends of
     # the recording can be larger with the larger k it picks)
-    dct, auto = tmp_path / "dct", tmp_path / "auto"
-    base = ["demo", "--paper", "--frames", "60", "--seed", "2", "--no-plots"]
-    assert main([*base, "--k", "12", "--out", str(dct)]) == EXIT_OK
-    assert main([*base, "--method", "auto-k", "--out", str(auto)]) == EXIT_OK
-    a = json.loads((dct / "summary.json").read_text())
+    auto = tmp_path / "auto"
+    assert main([*PAPER_SMALL, "--method", "auto-k", "--out", str(auto)]) == EXIT_OK
+    a = paper_dct_summary
     b = json.loads((auto / "summary.json").read_text())
     assert b["method"] == "auto-k" and b["point"]["ok"]
     assert "cross-validated" in b["estimator"]
