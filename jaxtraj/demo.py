@@ -63,7 +63,8 @@ def _estimate(method: str, P, uv, times, weights, k: int, noise: float):
         ks = tuple(range(4, k_max + 1, 2))
         choose = jax.jit(jax.vmap(lambda u, w: select_k_cv(P, u, times, ks, w).k))
         chosen = np.sort(np.asarray(choose(uv, weights)))
-        k_auto = int(chosen[(chosen.size - 1) // 2])  # the (lower) median over the tracks
+        # the (lower) median over the tracks; 0 (no admissible candidate): the smallest
+        k_auto = int(chosen[(chosen.size - 1) // 2]) or ks[0]
         res = reconstruct_points(P, uv, DCTBasis.from_times(times, k_auto)(times), weights)
         label = f"DCT k={k_auto} (cross-validated, gain-weighted)"
         return res.points, res.rms_px, res.gain, res.status == Status.OK, label
