@@ -61,13 +61,15 @@ def _estimate(method: str, P, uv, times, weights, k: int, noise: float):
         # training frames (4/5 of them) can fit
         k_max = max(4, min(60, (8 * times.shape[0]) // 15))
         ks = tuple(range(4, k_max + 1, 2))
-        choose = jax.jit(jax.vmap(lambda u, w: select_k_cv(P, u, times, ks, w).k))
-        chosen = np.sort(np.asarray(choose(uv, weights)))
+        # cameras and times as arguments, not as constants baked into the program
+        choose = jax.jit(
+            jax.vmap(lambda P, u, t, w: select_k_cv(P, u, t, ks, w).k, (None, 0, None, 0))
+        )
+        chosen = np.sort(np.asarray(choose(P, uv, times, weights)))
         # the (lower) median over the tracks; 0 (no admissible candidate): the smallest
         k_auto = int(chosen[(chosen.size - 1) // 2]) or ks[0]
-        res = reconstruct_points(P, uv, DCTBasis.from_times(times, k_auto)(times), weights)
-        label = f"DCT k={k_auto} (cross-validated, gain-weighted)"
-        return res.points, res.rms_px, res.gain, res.status == Status.OK, label
+        *fit, _ = _estimate("dct", P, uv, times, weights, k_auto, noise)
+        return (*fit, f"DCT k={k_auto} (cross-validated, gain-weighted)")
     if method == "regularised":
         from .estimators import roughness_penalty, select_penalty_cv
 
