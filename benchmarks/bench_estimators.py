@@ -16,7 +16,8 @@ start prior (the true first state, or one drawn from the prior); see :func:`peer
 
 ``--paired`` runs only the filter against Stone Soup, point by point on the same scenes,
 and reports the ratio of their errors with a 95 % confidence interval (see
-:func:`paired`).
+:func:`paired`). ``--k-choice`` runs only the plain DCT at every k against the k chosen by
+cross-validation, with the paired difference to the best fixed k (see :func:`k_choice`).
 
 Run: ``python benchmarks/bench_estimators.py [--scenes 6] [--points 8] [--stonesoup]
 [--tune-scenes 1] [--out results.json]``; ``--markdown results.json`` reprints the tables.
@@ -350,6 +351,15 @@ def peer_rows(rng, P, uv, times, sigma_px, Xs, tuned):
     return rows
 
 
+LABEL = {"sim": "simulated", "mocap": "motion capture"}
+
+
+def markdown_table(header: list[str], rows: list[list[str]]) -> str:
+    """A markdown table from its header cells and one list of cells per row."""
+    lines = ["| " + " | ".join(header) + " |", "|---" * len(header) + "|"]
+    return "\n".join(lines + ["| " + " | ".join(cells) + " |" for cells in rows])
+
+
 def paired(args):
     """The jaxtraj filter against Stone Soup on the same points, same start, each with its
     q tuned as in :func:`tune_q`: per cell and start, the geometric mean of the per-point
@@ -405,20 +415,110 @@ def paired(args):
                     )
                     rows.append(row)
                     print(row, flush=True)
-    lines = [
-        "| scene / camera | start | filter rule | filter [mm] | Stone Soup [mm] |"
-        " ratio (95 % CI) | filter closer |",
-        "|---|---|---|---|---|---|---|",
+    header = ["scene / camera", "start", "filter rule", "filter [mm]", "Stone Soup [mm]"]
+    header += ["ratio (95 % CI)", "filter closer"]
+    cells = [
+        [
+            f"{LABEL[r['source']]}, {r['mode']}",
+            r["start"],
+            r["rule"],
+            f"{r['filter_mm']:.3g}",
+            f"{r['stonesoup_mm']:.3g}",
+            f"{r['ratio']:.3f} ({r['ratio_lo']:.3f}-{r['ratio_hi']:.3f})",
+            f"{100 * r['filter_closer']:.0f} %",
+        ]
+        for r in rows
     ]
-    label = {"sim": "simulated", "mocap": "motion capture"}
-    for r in rows:
-        lines.append(
-            f"| {label[r['source']]}, {r['mode']} | {r['start']} | {r['rule']} |"
-            f" {r['filter_mm']:.3g} | {r['stonesoup_mm']:.3g} |"
-            f" {r['ratio']:.3f} ({r['ratio_lo']:.3f}-{r['ratio_hi']:.3f}) |"
-            f" {100 * r['filter_closer']:.0f} % |"
+    return rows, markdown_table(header, cells)
+
+
+ALL_K = tuple(range(4, 21))  # every k the error-optimal k is searched over
+
+
+def k_choice(args):
+    """How good is the k chosen by cross-validation? On the scenes of :func:`run` (same
+    seed, same draws), per cell: the mean error of each fixed k, of the DCT with k chosen
+    by each rule (one k per scene, the median of the points' choices), the paired
+    difference between auto-k and the fixed k picked per cell with the truth (95 % CI over
+    scenes, the independent units: the points of a scene share their k), the share of
+    scenes where auto-k is at least as close, and how far the chosen k lies from each
+    scene's error-optimal k (searched over 4-20). Returns the rows and a markdown table."""
+    rng = np.random.default_rng(args.seed)
+    bvh = ROOT.parent / "shared" / "data" / "cmu_bvh" / "scaled_131_01.bvh"
+    mocap = load_bvh_root(bvh) if bvh.exists() else None
+    sources = ["sim"] + (["mocap"] if mocap is not None else [])
+    F, noise, N = args.frames, args.noise, args.points
+    rules = ("gain_weighted", "reprojection")
+    cv = {
+        rule: jax.jit(
+            jax.vmap(lambda P, u, t, r=rule: select_k_cv(P, u, t, KS, rule=r).k, (None, 0, None))
         )
-    return rows, "\n".join(lines)
+        for rule in rules
+    }
+    rows = []
+    for source in sources:
+        for mode in MODES:
+            errs = {k: [] for k in ALL_K}
+            auto: dict[str, list] = {r: [] for r in rules}
+            k_gap: dict[str, list] = {r: [] for r in rules}
+            k_auto: dict[str, list] = {r: [] for r in rules}
+            k_best: list[int] = []
+            for _ in range(args.scenes):
+                times, X, P = scene(rng, F, mode, noise, source, mocap)
+                Xs = points_around(rng, X, N)
+                uv = np.stack([project_np(P, x) for x in Xs]) + noise * rng.normal(size=(N, F, 2))
+                e = {}
+                for k in ALL_K:
+                    e[k] = err_mm(jt.reconstruct_points(P, uv, jt.dct_basis(times, k)).points, Xs)
+                    errs[k].append(e[k])
+                k_opt = min(e, key=e.get)
+                k_best.append(k_opt)
+                for rule in rules:
+                    k = int(np.median(np.asarray(cv[rule](P, uv, times)))) or KS[0]
+                    auto[rule].append(e[k])
+                    k_gap[rule].append(abs(k - k_opt))
+                    k_auto[rule].append(k)
+            mean = {k: float(np.mean(v)) for k, v in errs.items()}
+            best_k = min(FIXED_K, key=mean.get)
+            ref = np.asarray(errs[best_k])
+            for rule in rules:
+                d = np.asarray(auto[rule]) - ref
+                half = 1.96 * d.std(ddof=1) / np.sqrt(d.size)
+                row = dict(
+                    source=source,
+                    mode=mode,
+                    rule=rule,
+                    scenes=int(d.size),
+                    fixed_k_mm={k: mean[k] for k in FIXED_K},
+                    best_fixed_k=int(best_k),
+                    auto_mm=float(np.mean(auto[rule])),
+                    diff_mm=float(d.mean()),
+                    diff_lo=float(d.mean() - half),
+                    diff_hi=float(d.mean() + half),
+                    auto_as_close=float(np.mean(d <= 0)),
+                    k_gap_median=float(np.median(k_gap[rule])),
+                    k_mean=float(np.mean(k_auto[rule])),
+                    k_opt_mean=float(np.mean(k_best)),
+                )
+                rows.append(row)
+                print(row, flush=True)
+    header = ["scene / camera", "k rule", "best fixed k [mm]", "auto-k [mm]"]
+    header += ["auto - best fixed (95 % CI) [mm]", "scenes auto-k as close"]
+    header += ["median abs(k - k_opt)", "mean k (k_opt)"]
+    cells = [
+        [
+            f"{LABEL[r['source']]}, {r['mode']}",
+            r["rule"].replace("_", "-"),
+            f"{r['fixed_k_mm'][r['best_fixed_k']]:.3g} (k = {r['best_fixed_k']})",
+            f"{r['auto_mm']:.3g}",
+            f"{r['diff_mm']:+.3g} ({r['diff_lo']:+.3g} to {r['diff_hi']:+.3g})",
+            f"{100 * r['auto_as_close']:.0f} %",
+            f"{r['k_gap_median']:g}",
+            f"{r['k_mean']:.1f} ({r['k_opt_mean']:.1f})",
+        ]
+        for r in rows
+    ]
+    return rows, markdown_table(header, cells)
 
 
 ESTIMATOR_COLUMNS = {
@@ -450,24 +550,19 @@ DRAWN_COLUMNS = {  # the same with the start's mean drawn from the prior
 
 def markdown(results) -> str:
     """The README's tables: mean 3D error [mm] per cell (and the peer's, if measured)."""
-    label = {"sim": "simulated", "mocap": "motion capture"}
 
     def table(columns):
-        lines = [
-            "| scene / camera | " + " | ".join(columns) + " |",
-            "|---" * (len(columns) + 1) + "|",
-        ]
+        rows = []
         for row in results:
-            cells = []
+            cells = [f"{LABEL[row['source']]}, {row['mode']}"]
             for key in columns.values():
                 if key is None:
                     v = min(row[f"dct_k{k}"]["err_mm"] for k in FIXED_K)
                 else:
                     v = row[key]["err_mm"] if key in row else float("nan")
                 cells.append(f"{v:.0f}" if v >= 1000 else f"{v:.3g}")
-            name = f"{label[row['source']]}, {row['mode']}"
-            lines.append(f"| {name} | " + " | ".join(cells) + " |")
-        return "\n".join(lines)
+            rows.append(cells)
+        return markdown_table(["scene / camera", *columns], rows)
 
     out = table(ESTIMATOR_COLUMNS)
     if "stonesoup_true_start" in results[0]:
@@ -499,6 +594,7 @@ def main():
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--stonesoup", action="store_true")
     p.add_argument("--paired", action="store_true", help="only the filter vs Stone Soup")
+    p.add_argument("--k-choice", action="store_true", help="only auto-k vs the fixed k")
     p.add_argument("--tune-scenes", type=int, default=1, help="scenes per cell to tune q on")
     p.add_argument("--out", type=Path, default=None)
     p.add_argument("--markdown", type=Path, default=None, help="print the tables of a JSON")
@@ -507,8 +603,8 @@ def main():
         print(markdown(json.loads(args.markdown.read_text())))
         return
     sys.path.insert(0, str(Path(__file__).parent))
-    if args.paired:
-        rows, table = paired(args)
+    if args.paired or args.k_choice:
+        rows, table = (k_choice if args.k_choice else paired)(args)
         print(table)
         if args.out:
             args.out.write_text(json.dumps(rows, indent=1))
