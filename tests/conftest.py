@@ -41,6 +41,15 @@ if "JAX_COMPILATION_CACHE_DIR" not in os.environ:
     jax.config.update("jax_persistent_cache_min_entry_size_bytes", -1)
 
 
+# XLA:CPU compiles the tests' programs without LLVM optimisation (-O0). Most of the suite's
+# time is compilation of programs that then run once on tiny inputs: at -O0 the camera-pose
+# fusion tests compile about 2.5x faster (31 -> 13 s for test_vmap_over_recordings_equals_loop's
+# programs), and the results agree to rounding. The benchmarks, the demo and users' code keep
+# XLA's default level; a level set by the user (in XLA_FLAGS) is kept.
+_OPT_LEVEL = "--xla_backend_optimization_level"
+if _OPT_LEVEL not in os.environ.get("XLA_FLAGS", ""):
+    os.environ["XLA_FLAGS"] = f"{os.environ.get('XLA_FLAGS', '')} {_OPT_LEVEL}=0".strip()
+
 # jaxtraj sets its XLA_FLAGS when imported, which takes effect only before the process first
 # compiles. Import it here, before any test module runs, so every executable this process puts
 # in the shared cache was compiled with the flags that its cache key records.

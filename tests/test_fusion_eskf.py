@@ -188,7 +188,7 @@ def test_vmap_over_recordings_equals_loop():
         ev = build_events(rec.imu, rec.robot, rec.image_times, noise=rnoise, latency=rec.latency)
         return ev, initial_state(ev)
 
-    evs, x0s = jax.vmap(one)(keys)
+    evs, x0s = jax.jit(jax.vmap(one))(keys)  # one compiled program, not op by op
     batched = jax.vmap(lambda e, x: eskf(e, x, P0, noise))(evs, x0s)
     smoothed = jax.vmap(lambda r: rts_smoother(r, noise))(batched)
     # shared layout (same rates, no jitter): eskf_batch keeps the update a real branch

@@ -25,7 +25,8 @@ OUTPUTS = ("points", "coeffs", "rms_px", "gain", "status")
 def _worker(*args, devices=None):
     env = dict(os.environ)
     if devices:
-        env["XLA_FLAGS"] = f"--xla_force_host_platform_device_count={devices}"
+        flags = f"{env.get('XLA_FLAGS', '')} --xla_force_host_platform_device_count={devices}"
+        env["XLA_FLAGS"] = flags.strip()  # keeps the session's flags (conftest.py)
     proc = subprocess.run(
         [sys.executable, str(WORKER), *map(str, args)],
         env=env,

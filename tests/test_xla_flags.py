@@ -36,6 +36,11 @@ def _probe(env_update: dict[str, str]) -> str:
     env = {
         k: v for k, v in os.environ.items() if k not in ("XLA_FLAGS", "JAX_COMPILATION_CACHE_DIR")
     }
+    # ... but with the session's optimisation level (conftest.py), which compiles faster and
+    # does not change whether the loop becomes one kernel
+    level = [f for f in os.environ.get("XLA_FLAGS", "").split() if "optimization_level" in f]
+    if level:
+        env["XLA_FLAGS"] = " ".join(level)
     env.update(env_update)
     out = subprocess.run(
         [sys.executable, "-c", _PROBE], env=env, capture_output=True, text=True, timeout=300
