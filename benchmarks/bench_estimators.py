@@ -99,6 +99,27 @@ def points_around(rng, X, n):
     return X[None] + rng.normal(size=(n, 1, 3)) * 0.05
 
 
+def draw_points(rng, args, source, mode, mocap):
+    """One scene of a cell and ``args.points`` points on its workpiece: times (F,), the
+    workpiece path (F, 3), the points' true tracks (N, F, 3), cameras (F, 3, 4) and noisy
+    pixels (N, F, 2), drawn from ``rng`` in this order (so every mode of the bench sees
+    the same scenes for the same seed)."""
+    times, X, P = scene(rng, args.frames, mode, args.noise, source, mocap)
+    Xs = points_around(rng, X, args.points)
+    uv = np.stack([project_np(P, x) for x in Xs])
+    return times, X, Xs, P, uv + args.noise * rng.normal(size=uv.shape)
+
+
+BVH = ROOT.parent / "shared" / "data" / "cmu_bvh" / "scaled_131_01.bvh"
+
+
+def sources_and_mocap():
+    """The workpiece sources to run (the simulated cell, and motion capture where
+    ``../shared/data`` has it) and the motion-capture root path (None without it)."""
+    mocap = load_bvh_root(BVH) if BVH.exists() else None
+    return ["sim"] + (["mocap"] if mocap is not None else []), mocap
+
+
 def timed(fn, *args, repeat=2):
     out = fn(*args)
     jax.block_until_ready(out)
@@ -123,11 +144,7 @@ def run(args):  # noqa: C901, RUF100
     rng = np.random.default_rng(args.seed)
     tune_rng = np.random.default_rng(args.seed + 1000)  # tuning scenes, never tested on
     peer_rng = np.random.default_rng(args.seed + 2000)  # drawn starts: same scenes either way
-    mocap = None
-    bvh = ROOT.parent / "shared" / "data" / "cmu_bvh" / "scaled_131_01.bvh"
-    sources = ["sim"] + (["mocap"] if bvh.exists() else [])
-    if bvh.exists():
-        mocap = load_bvh_root(bvh)
+    sources, mocap = sources_and_mocap()
     F, noise, N = args.frames, args.noise, args.points
     results = []
     cv = {
@@ -143,9 +160,7 @@ def run(args):  # noqa: C901, RUF100
                 tuned = tune_q(tune_rng, args, source, mode, mocap)
                 print(source, mode, "tuned q [m^2/s^3]:", tuned)
             for _ in range(args.scenes):
-                times, X, P = scene(rng, F, mode, noise, source, mocap)
-                Xs = points_around(rng, X, N)
-                uv = np.stack([project_np(P, x) for x in Xs]) + noise * rng.normal(size=(N, F, 2))
+                times, X, Xs, P, uv = draw_points(rng, args, source, mode, mocap)
                 for k in FIXED_K:
                     b = jt.dct_basis(times, k)
                     r, dt = timed(lambda u, b=b, P=P: jt.reconstruct_points(P, u, b).points, uv)
@@ -289,10 +304,7 @@ def tune_q(rng, args, source, mode, mocap):
     with it."""
     errs: dict[str, list] = {}
     for _ in range(args.tune_scenes):
-        times, X, P = scene(rng, args.frames, mode, args.noise, source, mocap)
-        Xs = points_around(rng, X, args.points)
-        uv = np.stack([project_np(P, x) for x in Xs])
-        uv = uv + args.noise * rng.normal(size=uv.shape)
+        times, _, Xs, P, uv = draw_points(rng, args, source, mode, mocap)
         starts = true_start(Xs, times)
         for q in PEER_QS:
             e_ss, _ = stonesoup_errors(P, uv, times, args.noise, Xs, q, starts)
@@ -369,19 +381,15 @@ def paired(args):
     rng = np.random.default_rng(args.seed)
     tune_rng = np.random.default_rng(args.seed + 1000)
     peer_rng = np.random.default_rng(args.seed + 2000)
-    bvh = ROOT.parent / "shared" / "data" / "cmu_bvh" / "scaled_131_01.bvh"
-    mocap = load_bvh_root(bvh) if bvh.exists() else None
-    sources = ["sim"] + (["mocap"] if mocap is not None else [])
-    F, noise, N = args.frames, args.noise, args.points
+    sources, mocap = sources_and_mocap()
+    noise = args.noise
     rows = []
     for source in sources:
         for mode in MODES:
             tuned = tune_q(tune_rng, args, source, mode, mocap)
             errs: dict[str, list] = {}
             for _ in range(args.scenes):
-                times, X, P = scene(rng, F, mode, noise, source, mocap)
-                Xs = points_around(rng, X, N)
-                uv = np.stack([project_np(P, x) for x in Xs]) + noise * rng.normal(size=(N, F, 2))
+                times, _, Xs, P, uv = draw_points(rng, args, source, mode, mocap)
                 exact = true_start(Xs, times)
                 sd = np.sqrt(np.diag(START_COV)).reshape(2, 3)
                 drawn = exact + peer_rng.normal(size=exact.shape) * sd
@@ -444,10 +452,7 @@ def k_choice(args):
     scenes where auto-k is at least as close, and how far the chosen k lies from each
     scene's error-optimal k (searched over 4-20). Returns the rows and a markdown table."""
     rng = np.random.default_rng(args.seed)
-    bvh = ROOT.parent / "shared" / "data" / "cmu_bvh" / "scaled_131_01.bvh"
-    mocap = load_bvh_root(bvh) if bvh.exists() else None
-    sources = ["sim"] + (["mocap"] if mocap is not None else [])
-    F, noise, N = args.frames, args.noise, args.points
+    sources, mocap = sources_and_mocap()
     rules = ("gain_weighted", "reprojection")
     cv = {
         rule: jax.jit(
@@ -464,9 +469,7 @@ def k_choice(args):
             k_auto: dict[str, list] = {r: [] for r in rules}
             k_best: list[int] = []
             for _ in range(args.scenes):
-                times, X, P = scene(rng, F, mode, noise, source, mocap)
-                Xs = points_around(rng, X, N)
-                uv = np.stack([project_np(P, x) for x in Xs]) + noise * rng.normal(size=(N, F, 2))
+                times, _, Xs, P, uv = draw_points(rng, args, source, mode, mocap)
                 e = {}
                 for k in ALL_K:
                     e[k] = err_mm(jt.reconstruct_points(P, uv, jt.dct_basis(times, k)).points, Xs)
