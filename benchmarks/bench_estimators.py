@@ -110,6 +110,26 @@ def draw_points(rng, args, source, mode, mocap):
     return times, X, Xs, P, uv + args.noise * rng.normal(size=uv.shape)
 
 
+K_RULES = ("gain_weighted", "reprojection")  # the rules of select_k_cv
+
+
+def k_choosers():
+    """Per k rule, a compiled function (P, uv (N, F, 2), times) -> each point's k (N,)."""
+    return {
+        rule: jax.jit(
+            jax.vmap(lambda P, u, t, r=rule: select_k_cv(P, u, t, KS, rule=r).k, (None, 0, None))
+        )
+        for rule in K_RULES
+    }
+
+
+def scene_k(chosen) -> int:
+    """One k per scene: the median of the points' choices (which falls between two
+    candidates when an even number of points splits evenly); 0 (no candidate admissible
+    anywhere) gives the smallest candidate."""
+    return int(np.median(np.asarray(chosen))) or KS[0]
+
+
 BVH = ROOT.parent / "shared" / "data" / "cmu_bvh" / "scaled_131_01.bvh"
 
 
@@ -147,12 +167,7 @@ def run(args):  # noqa: C901, RUF100
     sources, mocap = sources_and_mocap()
     F, noise, N = args.frames, args.noise, args.points
     results = []
-    cv = {
-        rule: jax.jit(
-            jax.vmap(lambda P, u, t, r=rule: select_k_cv(P, u, t, KS, rule=r).k, (None, 0, None))
-        )
-        for rule in ("gain_weighted", "reprojection")
-    }
+    cv = k_choosers()
     for source in sources:
         for mode in MODES:
             acc: dict[str, list] = {}
@@ -165,13 +180,12 @@ def run(args):  # noqa: C901, RUF100
                     b = jt.dct_basis(times, k)
                     r, dt = timed(lambda u, b=b, P=P: jt.reconstruct_points(P, u, b).points, uv)
                     acc.setdefault(f"dct_k{k}", []).append((err_mm(r, Xs), dt / N))
-                # one k per scene: the median of the points' choices (0: none admissible)
                 ks, dt_cv = timed(lambda u, P=P, t=times: cv["reprojection"](P, u, t), uv)
-                b = jt.dct_basis(times, int(np.median(np.asarray(ks))) or KS[0])
+                b = jt.dct_basis(times, scene_k(ks))
                 r = jt.reconstruct_points(P, uv, b).points
                 acc.setdefault("dct_cv_k_reprojection", []).append((err_mm(r, Xs), dt_cv / N))
                 ks, dt_cv = timed(lambda u, P=P, t=times: cv["gain_weighted"](P, u, t), uv)
-                b = jt.dct_basis(times, int(np.median(np.asarray(ks))) or KS[0])
+                b = jt.dct_basis(times, scene_k(ks))
                 lin = jt.reconstruct_points(P, uv, b)
                 acc.setdefault("dct_cv_k", []).append((err_mm(lin.points, Xs), dt_cv / N))
                 # refined where the linear solve is trustworthy (status OK): on a flat
@@ -453,13 +467,8 @@ def k_choice(args):
     scene's error-optimal k (searched over 4-20). Returns the rows and a markdown table."""
     rng = np.random.default_rng(args.seed)
     sources, mocap = sources_and_mocap()
-    rules = ("gain_weighted", "reprojection")
-    cv = {
-        rule: jax.jit(
-            jax.vmap(lambda P, u, t, r=rule: select_k_cv(P, u, t, KS, rule=r).k, (None, 0, None))
-        )
-        for rule in rules
-    }
+    rules = K_RULES
+    cv = k_choosers()
     rows = []
     for source in sources:
         for mode in MODES:
@@ -477,7 +486,7 @@ def k_choice(args):
                 k_opt = min(e, key=e.get)
                 k_best.append(k_opt)
                 for rule in rules:
-                    k = int(np.median(np.asarray(cv[rule](P, uv, times)))) or KS[0]
+                    k = scene_k(cv[rule](P, uv, times))
                     auto[rule].append(e[k])
                     k_gap[rule].append(abs(k - k_opt))
                     k_auto[rule].append(k)
