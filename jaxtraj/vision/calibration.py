@@ -1,4 +1,4 @@
-"""Intrinsic camera calibration from images of a chessboard or ChArUco target.
+"""Intrinsic camera calibration from images of a chessboard, ChArUco or circle-grid target.
 
 Host-side (NumPy + OpenCV 4.x, imported lazily). The target frame ``t`` is the one the
 board builders of :mod:`jaxtraj.sim.render` use: the board is centred on the origin in the
@@ -22,11 +22,14 @@ __all__ = [
     "CalibrationResult",
     "CalibrationTarget",
     "calibrate_camera",
+    "calibrate_from_corners",
     "check_image_size",
+    "detect_target",
     "find_chessboard",
+    "find_circle_grid",
 ]
 
-_KINDS = ("chessboard", "charuco")
+_KINDS = ("chessboard", "charuco", "asymmetric_circles")
 _MIN_CHARUCO_CORNERS = 6
 
 
@@ -35,12 +38,15 @@ class CalibrationTarget:
     """A planar calibration target.
 
     Attributes:
-        kind: ``"chessboard"`` or ``"charuco"``.
+        kind: ``"chessboard"``, ``"charuco"`` or ``"asymmetric_circles"``.
         cols, rows: chessboard: the number of INNER corners per row and per column
             (OpenCV's ``patternSize``; use one even and one odd count so the board's
             orientation is unique); charuco: the number of SQUARES along x and y (as
-            ``cv2.aruco.CharucoBoard`` takes them).
-        square: side of one chessboard square [m].
+            ``cv2.aruco.CharucoBoard`` takes them); asymmetric_circles: circles per row
+            and number of rows (OpenCV's ``patternSize``, e.g. (4, 11)).
+        square: side of one chessboard square [m]; asymmetric_circles: OpenCV's
+            ``squareSize``, half the centre distance within a row (rows are ``square``
+            apart, every other row shifted by ``square``).
         marker: charuco only: side of the ArUco markers [m] (``0 < marker < square``).
         dictionary: charuco only: ArUco dictionary name (default ``"DICT_4X4_50"``).
     """
@@ -63,7 +69,7 @@ class CalibrationTarget:
         if not _positive(self.square):
             raise ValueError(f"square: expected a positive length [m], got {self.square!r}")
         object.__setattr__(self, "square", float(self.square))
-        if self.kind == "chessboard":
+        if self.kind != "charuco":
             for name in ("marker", "dictionary"):
                 if getattr(self, name) is not None:
                     raise ValueError(
@@ -109,8 +115,16 @@ class CalibrationTarget:
 
         chessboard: the ``cols * rows`` inner corners, row-major from the top-left inner
         corner as printed (the order of :func:`find_chessboard`); charuco: the
-        ``(cols - 1) * (rows - 1)`` chessboard corners, row ``k`` = ChArUco id ``k``.
+        ``(cols - 1) * (rows - 1)`` chessboard corners, row ``k`` = ChArUco id ``k``;
+        asymmetric_circles: the circle centres in OpenCV's order (row ``i``, circle ``j``
+        at ``((2 j + i mod 2) s, -i s)`` before centring, row 0 at the top as printed).
         """
+        if self.kind == "asymmetric_circles":
+            i, j = np.divmod(np.arange(self.cols * self.rows), self.cols)
+            x = (2 * j + i % 2) * self.square
+            y = -i * self.square
+            x, y = x - (x.max() + x.min()) / 2, y - (y.max() + y.min()) / 2
+            return np.stack([x, y, np.zeros_like(x)], -1)
         if self.kind == "chessboard":
             n_c, n_r = self.cols, self.rows
         else:
@@ -137,6 +151,8 @@ class CalibrationResult:
             that was left out.
         R_c_t: (n, 3, 3), t_c_t: (n, 3) [m] the target's pose in the camera per used view.
         per_view_rms: (n,) reprojection RMS per used view [px].
+        ids, uv: per used view, the target point indices (into
+            :meth:`CalibrationTarget.object_points`) and their pixels [px].
     """
 
     calibration: CameraCalibration
@@ -145,6 +161,8 @@ class CalibrationResult:
     R_c_t: np.ndarray
     t_c_t: np.ndarray
     per_view_rms: np.ndarray
+    ids: list | None = None
+    uv: list | None = None
 
 
 def _grid_order(g: np.ndarray, grey: np.ndarray) -> np.ndarray:
@@ -306,8 +324,8 @@ def calibrate_camera(
 ) -> CalibrationResult:
     """Calibrate K and the 5 distortion coefficients from views of a planar target.
 
-    Finds the target in every image (:func:`find_chessboard` or ChArUco detection with
-    at least 6 corners), then runs ``cv2.calibrateCamera`` (k1, k2, p1, p2, k3).
+    Finds the target in every image (:func:`detect_target`; ChArUco views need at least 6
+    corners, not all on one line), then runs :func:`calibrate_from_corners`.
 
     Args:
         images: grey (H, W) or BGR (H, W, 3) uint8 images, all of one size.
@@ -323,8 +341,6 @@ def calibrate_camera(
         ValueError: images of different sizes (naming the first that differs), fewer
             than 3 views with the target (naming the images that failed).
     """
-    import cv2
-
     if isinstance(target, dict):
         target = CalibrationTarget.from_dict(target)
     if not isinstance(target, CalibrationTarget):
@@ -349,30 +365,113 @@ def calibrate_camera(
             )
         greys.append(grey)
 
-    obj_all = target.object_points().astype(np.float32)
-    used, skipped, obj_pts, img_pts = [], [], [], []
+    corners, skipped = [], []
     for k, grey in enumerate(greys):
-        if target.kind == "chessboard":
-            uv = find_chessboard(grey, (target.cols, target.rows))
-            if uv is None:
-                skipped.append((_label(k, image_names), "chessboard not found"))
-                continue
-            obj = obj_all
+        ids, uv, why = detect_target(grey, target)
+        if why:
+            skipped.append((_label(k, image_names), why))
+            corners.append((np.zeros(0, np.int64), np.zeros((0, 2))))
         else:
-            ids, uv = find_charuco(grey, target)
-            if len(ids) < _MIN_CHARUCO_CORNERS:
-                skipped.append(
-                    (
-                        _label(k, image_names),
-                        f"{len(ids)} ChArUco corners found, need {_MIN_CHARUCO_CORNERS}",
-                    )
-                )
-                continue
-            obj = obj_all[ids]
-            if np.linalg.matrix_rank(obj[:, :2] - obj[:, :2].mean(0), tol=1e-9) < 2:
-                skipped.append((_label(k, image_names), "ChArUco corners all on one line"))
-                continue
+            corners.append((ids, uv))
+    return calibrate_from_corners(
+        corners, target, size, names=image_names, skipped=skipped, min_corners=_MIN_CHARUCO_CORNERS
+    )
+
+
+def find_circle_grid(image, pattern_size: tuple[int, int]):
+    """Centres of an asymmetric circle grid (``cv2.findCirclesGrid``), or None.
+
+    Args:
+        image: (H, W) grey or BGR uint8 image; pattern_size: (circles per row, rows).
+
+    Returns:
+        (cols * rows, 2) float64 centres [px] in OpenCV's order, or None when not found.
+    """
+    import cv2
+
+    grey = as_grey(image)
+    flags = cv2.CALIB_CB_ASYMMETRIC_GRID | cv2.CALIB_CB_CLUSTERING
+    found, centres = cv2.findCirclesGrid(grey, tuple(int(v) for v in pattern_size), flags=flags)
+    if not found or centres is None:
+        return None
+    return np.asarray(centres, np.float64).reshape(-1, 2)
+
+
+def detect_target(image, target: CalibrationTarget):
+    """The target's points in one image.
+
+    Returns:
+        ``(ids (n,), uv (n, 2), why)``: ids index :meth:`CalibrationTarget.object_points`;
+        ``why`` is "" when found, else the reason nothing was found (ids empty).
+    """
+    none = np.zeros(0, np.int64), np.zeros((0, 2))
+    if target.kind == "chessboard":
+        uv = find_chessboard(image, (target.cols, target.rows))
+        if uv is None:
+            return *none, "chessboard not found"
+        return np.arange(len(uv)), uv, ""
+    if target.kind == "asymmetric_circles":
+        uv = find_circle_grid(image, (target.cols, target.rows))
+        if uv is None:
+            return *none, "circle grid not found"
+        return np.arange(len(uv)), uv, ""
+    ids, uv = find_charuco(image, target)  # too few corners: judged by the calibration
+    return ids, uv, ""
+
+
+def calibrate_from_corners(
+    corners,
+    target: CalibrationTarget,
+    image_size,
+    *,
+    names=None,
+    skipped=None,
+    min_corners: int = 6,
+) -> CalibrationResult:
+    """Calibrate K and (k1, k2, p1, p2, k3) with ``cv2.calibrateCamera`` from target points.
+
+    Args:
+        corners: per view ``(ids (n,), uv (n, 2))``; ids index the target's object points.
+            Views may show any subset (partial ChArUco views); a view with fewer than
+            ``min_corners`` points, or with all its points on one line, is skipped.
+        target: the :class:`CalibrationTarget`.
+        image_size: (width, height) [px].
+        names: names of the views (messages, ``skipped``); None: their indices.
+        skipped: (name, reason) of views already left out (listed in the result).
+        min_corners: fewest points a view needs.
+
+    Raises:
+        ValueError: fewer than 3 usable views (naming the views left out and why), an id
+            outside the target.
+    """
+    import cv2
+
+    obj_all = target.object_points()
+    what = "ChArUco corners" if target.kind == "charuco" else "target points"
+    skipped = list(skipped or [])
+    used, obj_pts, img_pts, used_ids, used_uv = [], [], [], [], []
+    done = {n for n, _ in skipped}
+    for k, (ids, uv) in enumerate(corners):
+        name = _label(k, names)
+        ids = np.asarray(ids, np.int64).ravel()
+        uv = np.asarray(uv, np.float64).reshape(-1, 2)
+        if name in done and len(ids) == 0:
+            continue
+        if len(ids) and (ids.min() < 0 or ids.max() >= len(obj_all)):
+            raise ValueError(
+                f"corners[{k}] ({name}): id {int(ids.max())} outside the target's "
+                f"{len(obj_all)} points"
+            )
+        if len(ids) < min_corners:
+            skipped.append((name, f"{len(ids)} {what} found, need {min_corners}"))
+            continue
+        obj = obj_all[ids]
+        if np.linalg.matrix_rank(obj[:, :2] - obj[:, :2].mean(0), tol=1e-9) < 2:
+            skipped.append((name, f"{what} all on one line"))
+            continue
         used.append(k)
+        used_ids.append(ids)
+        used_uv.append(uv)
         obj_pts.append(np.ascontiguousarray(obj, np.float32))
         img_pts.append(np.ascontiguousarray(uv, np.float32).reshape(-1, 1, 2))
 
@@ -382,6 +481,7 @@ def calibrate_camera(
             f"images: the target was found in {len(used)} image(s), need >= 3 for a "
             f"calibration; failed: {failed}"
         )
+    size = tuple(int(v) for v in image_size)
     crit = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 200, 1e-12)
     rms, K, dist, rvecs, tvecs = cv2.calibrateCamera(
         obj_pts, img_pts, size, None, None, flags=0, criteria=crit
@@ -401,4 +501,6 @@ def calibrate_camera(
         R_c_t=np.asarray(Rs),
         t_c_t=np.asarray(ts),
         per_view_rms=np.asarray(per_view),
+        ids=used_ids,
+        uv=used_uv,
     )
