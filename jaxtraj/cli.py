@@ -2,7 +2,7 @@
 
 Sub-commands (``jaxtraj COMMAND --help`` explains each option):
     simulate     write the recording folder of a simulated robot cell, images rendered
-    calibrate    camera intrinsics and hand-eye transform from calibration/ images
+    calibrate    camera intrinsics and hand-eye transform from a calibration folder
     fuse         camera poses at the image times from the IMU and robot logs
     reconstruct  detect the markers, measure the trajectories and the 6-DoF pose
     evaluate     compare the results with the simulation's ground truth
@@ -127,13 +127,73 @@ def build_parser() -> argparse.ArgumentParser:
 
     cal = sub.add_parser(
         "calibrate",
-        help="intrinsics (+ hand-eye) from calibration/ images; writes camera.json",
-        description='Find the calibration target of recording.json\'s "calibration_target" '
-        "in RECORDING/calibration/*.png, calibrate K and the distortion (OpenCV), and, when "
-        "calibration/robot.csv gives the flange pose of each image, the hand-eye transform. "
-        "Writes RECORDING/camera.json.",
+        help="intrinsics (+ hand-eye) from a calibration folder or a recording's calibration/",
+        description="Calibrate K and the distortion (OpenCV) and, with robot poses, the "
+        "hand-eye transform: every OpenCV method is scored by the consistency it achieves, "
+        "the best one starts a JAX bundle adjustment of intrinsics, distortion, hand-eye and "
+        "target pose over all corners. FOLDER is a recording (with recording.json: the "
+        'target is its "calibration_target", the views calibration/*.png with '
+        "calibration/robot.csv; writes FOLDER/camera.json) or a calibration folder: "
+        "target.json, images (*.png, *.jpg, ...) or corners.csv (view,id,u,v), and "
+        "robot.csv (optional; a file column or natural sort pairs rows with views); writes "
+        "FOLDER/camera.json and FOLDER/calibration.json (the report).",
     )
-    cal.add_argument("recording", type=Path, help="the recording folder")
+    cal.add_argument(
+        "recording", metavar="FOLDER", type=Path, help="a calibration folder or a recording folder"
+    )
+    cal.add_argument("--target", type=Path, default=None, help="target description (target.json)")
+    cal.add_argument("--robot", type=Path, default=None, help="robot poses (robot.csv)")
+    cal.add_argument(
+        "--corners", type=Path, default=None, help="detected corners view,id,u,v (corners.csv)"
+    )
+    cal.add_argument(
+        "--robot-format",
+        choices=("auto", "pq", "kuka", "rpy", "rotvec", "matrix"),
+        default="auto",
+        help="robot pose columns: pq x,y,z,qw,qx,qy,qz; kuka X,Y,Z,A,B,C (mm, deg, "
+        "Rz(A) Ry(B) Rx(C)); rpy x,y,z,roll,pitch,yaw (Rz(yaw) Ry(pitch) Rx(roll): fixed "
+        "axes x, y, z); rotvec x,y,z,rx,ry,rz (axis-angle, UR); matrix m00..m23 (row-major "
+        "3x4); auto: from the header (default)",
+    )
+    cal.add_argument(
+        "--length-unit", choices=("m", "mm"), default="m", help="robot positions (not kuka)"
+    )
+    cal.add_argument(
+        "--angle-unit", choices=("rad", "deg"), default="rad", help="robot angles (not kuka)"
+    )
+    cal.add_argument(
+        "--method",
+        choices=("auto", "tsai", "park", "horaud", "andreff", "daniilidis", "shah", "li"),
+        default="auto",
+        help="OpenCV hand-eye method that starts the refinement (auto: the most consistent)",
+    )
+    cal.add_argument(
+        "--no-refine", action="store_true", help="keep OpenCV's result (no bundle adjustment)"
+    )
+    cal.add_argument(
+        "--eye-to-hand",
+        action="store_true",
+        help="the camera stands still and the target is on the flange",
+    )
+    cal.add_argument(
+        "--robot-sigma-mm", type=_positive_float, default=None,
+        help="robot position noise [mm] (default 0.1; a recording: its recording.json)",
+    )  # fmt: skip
+    cal.add_argument(
+        "--robot-sigma-deg", type=_positive_float, default=None,
+        help="robot rotation noise [deg] (default 0.02; a recording: its recording.json)",
+    )  # fmt: skip
+    cal.add_argument(
+        "--max-spread-mm", type=_positive_float, default=None,
+        help="accept when the implied target position spreads less (default: from the data)",
+    )  # fmt: skip
+    cal.add_argument(
+        "--max-spread-deg", type=_positive_float, default=None,
+        help="accept when the implied target orientation spreads less (default: from the data)",
+    )  # fmt: skip
+    cal.add_argument(
+        "--min-corners", type=_positive_int, default=6, help="fewest target points per view (6)"
+    )
 
     fuse = sub.add_parser(
         "fuse",

@@ -35,8 +35,45 @@ def _simulate(args: Namespace, progress) -> int:
     return EXIT_OK
 
 
+def _calibration_options(args: Namespace):
+    import numpy as np
+
+    from .pipeline.calibrate import DEFAULT_ROBOT_SIGMA, CalibrationOptions
+
+    sigma = None  # default: recording.json's for a recording, else DEFAULT_ROBOT_SIGMA
+    if args.robot_sigma_mm is not None or args.robot_sigma_deg is not None:
+        sigma = (
+            DEFAULT_ROBOT_SIGMA[0] if args.robot_sigma_mm is None else args.robot_sigma_mm * 1e-3,
+            DEFAULT_ROBOT_SIGMA[1]
+            if args.robot_sigma_deg is None
+            else float(np.radians(args.robot_sigma_deg)),
+        )
+    options = CalibrationOptions(
+        robot_format=args.robot_format,
+        length_unit=args.length_unit,
+        angle_unit=args.angle_unit,
+        method=args.method,
+        refine=not args.no_refine,
+        eye_to_hand=args.eye_to_hand,
+        robot_sigma=sigma,
+        max_position_spread=None if args.max_spread_mm is None else args.max_spread_mm * 1e-3,
+        max_rotation_spread=(
+            None if args.max_spread_deg is None else float(np.radians(args.max_spread_deg))
+        ),
+        min_corners=args.min_corners,
+    )
+    return options
+
+
 def _calibrate(args: Namespace, progress) -> int:
-    report = steps.step_calibrate(args.recording)
+    options = _calibration_options(args)
+    folder = Path(args.recording)
+    files = {"target_file": args.target, "robot_file": args.robot, "corners_file": args.corners}
+    if (folder / "recording.json").is_file():
+        if any(v is not None for v in files.values()):
+            raise ValueError("--target, --robot, --corners: only for a calibration folder")
+        files = {}
+    report = steps.step_calibrate(folder, options, **files)
     K = report.camera.K
     print(
         f"jaxtraj calibrate: {len(report.views_used)} views used, reprojection RMS "
@@ -45,14 +82,42 @@ def _calibrate(args: Namespace, progress) -> int:
     )
     for name, why in report.views_skipped:
         print(f"  skipped {name}: {why}")
-    if report.hand_eye is not None:
-        he = report.hand_eye
+    he = report.hand_eye
+    if he is not None:
+        setup = "eye-in-hand" if he["eye_in_hand"] else "eye-to-hand"
+        print(
+            f"  hand-eye ({setup}): consistency (target pose implied by each view, RMS spread; "
+            f"limits {he['limits']}: {he['position_limit_mm']:.2f} mm, "
+            f"{he['rotation_limit_deg']:.3f} deg)"
+        )
+        rows = [(m, c) for m, c in he["methods"].items()]
+        if he["refined"] is not None:
+            rows.append((f"refined ({he['method']} start)", he["refined"]))
+        for name, c in rows:
+            if "error" in c:
+                print(f"    {name:22s} failed: {c['error']}")
+                continue
+            mark = " <- start" if name == he["method"] else ""
+            spread = (
+                f"{c['target_spread_position_mm']:7.3f} mm {c['target_spread_rotation_deg']:7.4f}"
+            )
+            axxb = f"{c['translation_residual_mm']:7.3f} mm {c['rotation_residual_deg']:7.4f}"
+            print(f"    {name:22s} spread {spread} deg; AX=XB {axxb} deg{mark}")
+        if he["refined"] is not None:
+            sd = he["refined"]["std"]
+            print(
+                f"  refined: RMS {he['refined']['rms_px']:.3f} px, hand-eye std "
+                f"{max(sd['hand_eye_translation_mm']):.3f} mm, "
+                f"{max(sd['hand_eye_rotation_deg']):.4f} deg (largest axis)"
+            )
         print(
             f"  hand-eye: residual {he['rotation_residual_deg']:.3f} deg, "
             f"{he['translation_residual_mm']:.2f} mm ({'OK' if he['ok'] else 'NOT OK'})"
         )
-    print(f"  wrote {Path(args.recording) / 'camera.json'}")
-    return EXIT_OK if report.hand_eye is None or report.hand_eye["ok"] else EXIT_FAILED
+        for why in he["reasons"]:
+            print(f"  rejected: {why}")
+    print(f"  wrote {folder / 'camera.json'}")
+    return EXIT_OK if he is None or he["ok"] else EXIT_FAILED
 
 
 def _fuse(args: Namespace, progress) -> int:

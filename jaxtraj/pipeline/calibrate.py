@@ -1,33 +1,101 @@
-"""Pipeline step ``calibrate``: intrinsics (and hand-eye) from the calibration images.
+"""Pipeline step ``calibrate``: intrinsics and hand-eye from a calibration folder.
 
-The images in ``calibration/`` show the target described by ``calibration_target`` in
-``recording.json``; OpenCV finds it and calibrates K and (k1, k2, p1, p2, k3)
-(:func:`jaxtraj.vision.calibrate_camera`). When ``calibration/robot.csv`` gives the
-flange pose at every calibration image, the hand-eye transform ``T_f_c`` follows from the
-target poses (:func:`jaxtraj.vision.calibrate_hand_eye`).
+One code path serves a calibration folder on its own (:func:`calibrate_folder`) and the
+``calibration/`` folder of a recording (:func:`calibrate_recording`):
+
+1. the target's points in every view: found in the images (:func:`~jaxtraj.vision.
+   calibration.detect_target`) or read from a corners CSV ``view,id,u,v``;
+2. ``cv2.calibrateCamera`` (views with too few points are listed and skipped);
+3. with robot poses (paired by a ``file`` column or natural sort): the motions are
+   checked (rotations about two axes at least), every OpenCV hand-eye method is run and
+   scored by the consistency it achieves on the data (the spread of the implied target
+   pose against limits derived from the per-view pose uncertainty and the robot's noise);
+   the best one (or ``method``) starts
+4. the JAX bundle adjustment (:func:`jaxtraj.calibration.refine_hand_eye`) of
+   intrinsics, distortion, hand-eye and target pose over all corners of all views;
+5. acceptance: the final result's target spread under its limits (or the user's), with
+   the reasons when it is rejected.
+
+A calibration folder holds ``target.json`` (the :class:`~jaxtraj.vision.calibration.
+CalibrationTarget`; with a corners CSV also ``"image_size": [width, height]``), the images
+(``*.png``, ``*.jpg``, ...) or ``corners.csv``, and optionally ``robot.csv`` (any form of
+:mod:`jaxtraj.io.robot_poses`). Results: ``camera.json`` and ``calibration.json``.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
+import json
+from dataclasses import dataclass, field, replace
+from pathlib import Path
 
 import numpy as np
 
 from ..io.recording import Recording
-from ..io.records import CameraCalibration
+from ..io.records import CameraCalibration, quat_to_matrix
+from ..io.robot_poses import RobotPoses, natural_key, pair_views, read_robot_poses
+from ..io.tables import RecordingError
 
-__all__ = ["CalibrationReport", "calibrate_recording"]
+__all__ = [
+    "DEFAULT_ROBOT_SIGMA",
+    "CalibrationOptions",
+    "CalibrationReport",
+    "calibrate_folder",
+    "calibrate_recording",
+    "calibrate_views",
+]
+
+IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff")
+#: Robot pose noise assumed when none is given: 0.1 mm, 0.02 deg (an assumption, about a
+#: good industrial arm's repeatability; pass the controller's own figures when known).
+DEFAULT_ROBOT_SIGMA = (1e-4, float(np.radians(0.02)))
+
+
+@dataclass(frozen=True)
+class CalibrationOptions:
+    """Options of the calibration (the ``jaxtraj calibrate`` flags).
+
+    Attributes:
+        robot_format, length_unit, angle_unit: how to read the robot poses
+            (:func:`jaxtraj.io.robot_poses.read_robot_poses`).
+        method: an OpenCV hand-eye method (:data:`jaxtraj.vision.handeye.METHODS`) or
+            ``"auto"``: the one with the most consistent result on the data.
+        refine: run the JAX bundle adjustment after the closed form.
+        eye_to_hand: the camera stands still and the target is on the flange.
+        robot_sigma: (position [m], rotation [rad]) noise of the robot's reported poses;
+            None: a recording's ``robot_noise``, else :data:`DEFAULT_ROBOT_SIGMA`.
+        max_position_spread, max_rotation_spread: acceptance limits [m], [rad] on the
+            spread of the implied target pose; None: derived from the data.
+        min_corners: fewest target points a view needs.
+    """
+
+    robot_format: str = "auto"
+    length_unit: str = "m"
+    angle_unit: str = "rad"
+    method: str = "auto"
+    refine: bool = True
+    eye_to_hand: bool = False
+    robot_sigma: tuple[float, float] | None = None
+    max_position_spread: float | None = None
+    max_rotation_spread: float | None = None
+    min_corners: int = 6
 
 
 @dataclass(frozen=True)
 class CalibrationReport:
-    """Outcome of :func:`calibrate_recording`.
+    """Outcome of a calibration.
 
     Attributes:
-        camera: the calibration to write as ``camera.json``.
-        views_used, views_skipped: image names used / (name, reason) left out.
-        rms_px: reprojection RMS of the intrinsic calibration [px].
-        hand_eye: None, or a dict with the hand-eye residuals and its ``ok`` flag.
+        camera: the calibration to write as ``camera.json`` (``T_f_c`` eye-in-hand).
+        views_used, views_skipped: view names used / (name, reason) left out.
+        rms_px: reprojection RMS of the final intrinsics [px] (``calibrateCamera``'s, or
+            the bundle adjustment's over all corners).
+        hand_eye: None without robot poses; else a dict: the chosen result's residuals
+            (``rotation_residual_deg``, ``translation_residual_mm``), target spread
+            (``target_spread_position_mm``, ``target_spread_rotation_deg``), limits,
+            ``ok``, ``reasons`` (why not ok), ``method``, ``methods`` (every OpenCV method's
+            consistency), ``refined`` (the bundle adjustment's, with standard deviations),
+            ``T_x`` and ``T_b`` (4x4 lists; eye-in-hand ``T_f_c``, ``T_b_t``; eye-to-hand
+            ``T_b_c``, ``T_f_t``).
     """
 
     camera: CameraCalibration
@@ -35,6 +103,20 @@ class CalibrationReport:
     views_skipped: list
     rms_px: float
     hand_eye: dict | None
+    intrinsics: dict = field(default_factory=dict)
+
+    def to_json(self) -> dict:
+        """A JSON-ready dict of the report (``calibration.json``)."""
+        return {
+            "K": self.camera.K.tolist(),
+            "dist": self.camera.dist.tolist(),
+            "image_size": list(self.camera.image_size),
+            "rms_px": self.rms_px,
+            "views_used": list(self.views_used),
+            "views_skipped": [list(v) for v in self.views_skipped],
+            "intrinsics": self.intrinsics,
+            "hand_eye": self.hand_eye,
+        }
 
 
 def _read_image(path):
@@ -46,14 +128,356 @@ def _read_image(path):
     return image
 
 
-def calibrate_recording(rec: Recording) -> CalibrationReport:
+def _rigid(R, t):
+    T = np.eye(4)
+    T[:3, :3], T[:3, 3] = R, t
+    return T
+
+
+def _consistency_dict(c: dict) -> dict:
+    out = {
+        "target_spread_position_mm": c["position_spread"] * 1e3,
+        "target_spread_rotation_deg": float(np.degrees(c["rotation_spread"])),
+        "rotation_residual_deg": float(np.degrees(c["rotation_residual"])),
+        "translation_residual_mm": c["translation_residual"] * 1e3,
+    }
+    if "position_limit" in c:
+        out["position_limit_mm"] = c["position_limit"] * 1e3
+        out["rotation_limit_deg"] = float(np.degrees(c["rotation_limit"]))
+    return out
+
+
+def _score(c: dict) -> float:
+    return (c["position_spread"] / c["position_limit"]) ** 2 + (
+        c["rotation_spread"] / c["rotation_limit"]
+    ) ** 2
+
+
+def _pnp(obj, uv, K, dist, T0):
+    import cv2
+
+    rvec = cv2.Rodrigues(np.ascontiguousarray(T0[:3, :3]))[0]
+    _, rvec, tvec = cv2.solvePnP(
+        obj, uv, K, dist, rvec.copy(), T0[:3, 3].reshape(3, 1).copy(), True, cv2.SOLVEPNP_ITERATIVE
+    )
+    return _rigid(cv2.Rodrigues(rvec)[0], tvec.ravel())
+
+
+def _hand_eye(result, target, T_b_f, options: CalibrationOptions, robot_source: str) -> tuple:
+    import cv2
+
+    from ..calibration import refine_hand_eye
+
+    if options.robot_sigma is None:
+        options = replace(options, robot_sigma=DEFAULT_ROBOT_SIGMA)
+    from ..vision.handeye import (
+        METHODS,
+        consistency,
+        motion_axes_check,
+        solve_hand_eye,
+        view_pose_covariances,
+    )
+
+    try:
+        motion_axes_check(T_b_f)
+    except ValueError as err:
+        raise ValueError(f"{robot_source}: {err}") from None
+    cal = result.calibration
+    obj_all = target.object_points()
+    objs = [obj_all[ids] for ids in result.ids]
+    T_c_t = np.stack([_rigid(R, t) for R, t in zip(result.R_c_t, result.t_c_t, strict=True)])
+    eih = not options.eye_to_hand
+    M = np.linalg.inv(T_b_f) if eih else T_b_f
+    n_obs = sum(len(i) for i in result.ids)
+    dof = 2 * n_obs - 9 - 6 * len(objs)
+    pixel_sigma = max(cal.rms_px * np.sqrt(n_obs / max(dof, 1)), 1e-3)  # per coordinate
+    cov = view_pose_covariances(objs, result.uv, T_c_t, cal.K, cal.dist, pixel_sigma)
+    methods, solutions = {}, {}
+    for m in METHODS:
+        try:
+            X, B = solve_hand_eye(M, T_c_t, m)
+        except cv2.error as err:  # OpenCV refused (degenerate data): report, go on
+            methods[m] = {"error": str(err).strip().splitlines()[-1]}
+            continue
+        if not (np.all(np.isfinite(X)) and np.all(np.isfinite(B))):
+            methods[m] = {"error": "non-finite result"}
+            continue
+        c = consistency(M, T_c_t, X, cov, options.robot_sigma)
+        methods[m] = {**_consistency_dict(c), "score": _score(c)}
+        solutions[m] = (X, B, c)
+    if not solutions:
+        raise ValueError(f"{robot_source}: every OpenCV hand-eye method failed: {methods}")
+    if options.method == "auto":
+        method = min(solutions, key=lambda m: methods[m]["score"])
+    elif options.method in solutions:
+        method = options.method
+    else:
+        raise ValueError(
+            f"method: {options.method!r} failed on these data ({methods[options.method]})"
+        )
+    X, B, c = solutions[method]
+    K, dist, rms = cal.K, cal.dist, cal.rms_px
+    refined = None
+    if options.refine:
+        N = len(obj_all)
+        uv = np.zeros((len(objs), N, 2))
+        w = np.zeros((len(objs), N))
+        for v, (ids, p) in enumerate(zip(result.ids, result.uv, strict=True)):
+            uv[v, ids], w[v, ids] = p, 1.0
+        r = refine_hand_eye(
+            obj_all, uv, w, T_b_f, K, dist, X, B,
+            eye_in_hand=eih,
+            pixel_sigma=pixel_sigma,
+            robot_position_sigma=options.robot_sigma[0],
+            robot_rotation_sigma=options.robot_sigma[1],
+            loss="huber",
+            loss_scale=3.0 * max(rms, 0.05),
+        )  # fmt: skip
+        K, dist = np.asarray(r.K), np.asarray(r.dist)
+        X, B = np.asarray(r.T_x), np.asarray(r.T_b)
+        T_c_t = np.stack(
+            [_pnp(o, p, K, dist, T) for o, p, T in zip(objs, result.uv, T_c_t, strict=True)]
+        )
+        cov = view_pose_covariances(objs, result.uv, T_c_t, K, dist, pixel_sigma)
+        c = consistency(M, T_c_t, X, cov, options.robot_sigma)
+        std = np.asarray(r.std)
+        refined = {
+            **_consistency_dict(c),
+            "rms_px": float(r.rms_px),
+            "rms_px_start": float(r.rms_px_initial),
+            "variance_factor": float(r.variance_factor),
+            "steps": int(r.steps),
+            "converged": bool(r.converged),
+            "std": {
+                "fx_px": float(std[0]),
+                "fy_px": float(std[1]),
+                "cx_px": float(std[2]),
+                "cy_px": float(std[3]),
+                "hand_eye_rotation_deg": np.degrees(std[9:12]).tolist(),
+                "hand_eye_translation_mm": (std[12:15] * 1e3).tolist(),
+                "target_rotation_deg": np.degrees(std[15:18]).tolist(),
+                "target_translation_mm": (std[18:21] * 1e3).tolist(),
+            },
+        }
+        rms = float(r.rms_px)
+    limits = (
+        options.max_position_spread if options.max_position_spread else c["position_limit"],
+        options.max_rotation_spread if options.max_rotation_spread else c["rotation_limit"],
+    )
+    reasons = []
+    if c["position_spread"] > limits[0]:
+        reasons.append(
+            f"the target position implied by the views spreads by {c['position_spread'] * 1e3:.2f}"
+            f" mm RMS, over the limit {limits[0] * 1e3:.2f} mm"
+        )
+    if c["rotation_spread"] > limits[1]:
+        reasons.append(
+            f"the target orientation implied by the views spreads by "
+            f"{np.degrees(c['rotation_spread']):.3f} deg RMS, over the limit "
+            f"{np.degrees(limits[1]):.3f} deg"
+        )
+    derived = options.max_position_spread is None and options.max_rotation_spread is None
+    hand_eye = {
+        **_consistency_dict(c),
+        "position_limit_mm": limits[0] * 1e3,
+        "rotation_limit_deg": float(np.degrees(limits[1])),
+        "limits": "derived from the data" if derived else "given",
+        "ok": not reasons,
+        "reasons": reasons,
+        "method": method,
+        "result": "refined" if refined is not None else method,
+        "eye_in_hand": eih,
+        "pixel_sigma_px": pixel_sigma,
+        "methods": methods,
+        "refined": refined,
+        "T_x": X.tolist(),
+        "T_b": B.tolist(),
+    }
+    return K, dist, rms, X, hand_eye
+
+
+def calibrate_views(
+    corners: dict,
+    target,
+    image_size,
+    *,
+    robot: RobotPoses | None = None,
+    options: CalibrationOptions | None = None,
+    skipped=(),
+    T_i_c=None,
+) -> CalibrationReport:
+    """Calibrate from the target points of named views (steps 2-5 of the module doc).
+
+    Args:
+        corners: ``{view name: (ids, uv)}``.
+        target: the :class:`~jaxtraj.vision.calibration.CalibrationTarget`.
+        image_size: (width, height) [px].
+        robot: the robot poses, paired with the views by :func:`pair_views`; None: only
+            the intrinsics.
+        options: :class:`CalibrationOptions`.
+        skipped: (name, reason) of views left out before (no target found).
+        T_i_c: camera-in-IMU transform to keep in the camera calibration.
+    """
+    from ..vision.calibration import calibrate_from_corners
+
+    options = CalibrationOptions() if options is None else options
+    names = list(corners) + [n for n, _ in skipped]
+    if robot is not None:
+        names, T_b_f = pair_views(names, robot)
+    else:
+        names, T_b_f = sorted(names, key=natural_key), None
+    empty = (np.zeros(0, np.int64), np.zeros((0, 2)))
+    views = [corners.get(n, empty) for n in names]
+    result = calibrate_from_corners(
+        views,
+        target,
+        image_size,
+        names=names,
+        skipped=list(skipped),
+        min_corners=options.min_corners,
+    )
+    used = [names[k] for k in result.used]
+    cal = result.calibration
+    K, dist, rms, hand_eye = cal.K, cal.dist, float(cal.rms_px), None
+    T_f_c = None
+    intrinsics = {"opencv": {"K": cal.K.tolist(), "dist": cal.dist.tolist(), "rms_px": rms}}
+    if T_b_f is not None:
+        source = str(robot.path)
+        K, dist, rms, X, hand_eye = _hand_eye(result, target, T_b_f[result.used], options, source)
+        if not options.eye_to_hand:
+            T_f_c = X
+    camera = CameraCalibration(K=K, dist=dist, image_size=cal.image_size, rms_px=rms)
+    camera = replace(camera, T_f_c=T_f_c, T_i_c=T_i_c)
+    return CalibrationReport(
+        camera=camera,
+        views_used=used,
+        views_skipped=[(str(n), why) for n, why in result.skipped],
+        rms_px=rms,
+        hand_eye=hand_eye,
+        intrinsics=intrinsics,
+    )
+
+
+def _detect_images(paths, target):
+    from ..vision.calibration import detect_target
+    from ..vision.markers import as_grey
+
+    corners, skipped, size = {}, [], None
+    for p in paths:
+        grey = as_grey(_read_image(p), name=str(p))
+        if size is None:
+            size, first = grey.shape[::-1], p
+        elif grey.shape[::-1] != size:
+            raise ValueError(
+                f"{p}: image size (width, height) {grey.shape[::-1]} differs from {first.name}'s "
+                f"{size}"
+            )
+        ids, uv, why = detect_target(grey, target)
+        if why:
+            skipped.append((p.name, why))
+        else:
+            corners[p.name] = (ids, uv)
+    return corners, skipped, size
+
+
+def _read_target(path: Path):
+    from ..vision.calibration import CalibrationTarget
+
+    if not path.is_file():
+        raise RecordingError(
+            path,
+            None,
+            'no target description: write e.g. {"kind": "chessboard", "cols": 9, "rows": 6, '
+            '"square": 0.03} (kinds: chessboard, charuco, asymmetric_circles)',
+        )
+    try:
+        data = json.loads(path.read_text())
+    except json.JSONDecodeError as err:
+        raise RecordingError(path, err.lineno, f"not valid JSON ({err.msg})") from None
+    if not isinstance(data, dict):
+        raise RecordingError(path, None, "expected a JSON object")
+    size = data.pop("image_size", None)
+    try:
+        target = CalibrationTarget.from_dict(data)
+    except (ValueError, TypeError) as err:
+        raise RecordingError(path, None, str(err)) from None
+    return target, size
+
+
+def calibrate_folder(
+    folder: str | Path,
+    *,
+    options: CalibrationOptions | None = None,
+    target_file: str | Path | None = None,
+    robot_file: str | Path | None = None,
+    corners_file: str | Path | None = None,
+) -> CalibrationReport:
+    """Calibrate from a calibration folder on its own (module doc for its files).
+
+    Raises:
+        ValueError / RecordingError: a missing or bad file (naming it and the line), too
+            few usable views (listing the skipped ones), a robot pose file that does not
+            pair with the views, degenerate robot motions (naming the axis).
+    """
+    from ..io.corners import read_corners
+
+    folder = Path(folder)
+    if not folder.is_dir():
+        raise NotADirectoryError(f"{folder}: not a folder")
+    options = CalibrationOptions() if options is None else options
+    target_path = Path(target_file) if target_file else folder / "target.json"
+    target, size = _read_target(target_path)
+    corners_path = Path(corners_file) if corners_file else folder / "corners.csv"
+    if corners_file or corners_path.is_file():
+        corners = read_corners(corners_path)
+        skipped = []
+        if size is None:
+            raise RecordingError(
+                target_path, None, 'a corners CSV needs "image_size": [width, height] here'
+            )
+        try:
+            size = tuple(int(v) for v in size)
+            assert len(size) == 2 and min(size) > 0
+        except (TypeError, ValueError, AssertionError):
+            raise RecordingError(
+                target_path, None, f'"image_size": expected [width, height], got {size!r}'
+            ) from None
+    else:
+        paths = sorted(
+            (p for p in folder.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES),
+            key=lambda p: natural_key(p.name),
+        )
+        if not paths:
+            raise ValueError(
+                f"{folder}: no calibration images ({', '.join(IMAGE_SUFFIXES)}) and no corners.csv"
+            )
+        corners, skipped, size = _detect_images(paths, target)
+    robot_path = Path(robot_file) if robot_file else folder / "robot.csv"
+    robot = None
+    if robot_file or robot_path.is_file():
+        robot = read_robot_poses(
+            robot_path,
+            options.robot_format,
+            length_unit=options.length_unit,
+            angle_unit=options.angle_unit,
+        )
+    return calibrate_views(corners, target, size, robot=robot, options=options, skipped=skipped)
+
+
+def calibrate_recording(
+    rec: Recording, options: CalibrationOptions | None = None
+) -> CalibrationReport:
     """Calibrate the camera of a recording from its ``calibration/`` images.
+
+    The same code as :func:`calibrate_folder`: the target comes from ``recording.json``'s
+    ``calibration_target``, the robot poses from ``calibration/robot.csv`` (one row per
+    image, in the images' natural order), the robot noise from ``recording.json``.
 
     Raises:
         ValueError: no calibration images or target description, too few usable views,
             or a calibration robot file whose length does not match the images.
     """
-    from ..vision.calibration import CalibrationTarget, calibrate_camera
+    from ..vision.calibration import CalibrationTarget
 
     if not rec.calibration_images:
         raise ValueError(f"{rec.root / 'calibration'}: no calibration images (*.png, *.jpg)")
@@ -64,37 +488,25 @@ def calibrate_recording(rec: Recording) -> CalibrationReport:
             '"square": 0.03})'
         )
     target = CalibrationTarget.from_dict(rec.meta.calibration_target)
-    images = [_read_image(p) for p in rec.calibration_images]
-    names = [p.name for p in rec.calibration_images]
-    result = calibrate_camera(images, target, image_names=names)
-    T_i_c = rec.camera.T_i_c if rec.camera is not None else None
-    camera = replace(result.calibration, T_i_c=T_i_c)
-    hand_eye = None
+    options = CalibrationOptions() if options is None else options
+    noise = rec.meta.robot_noise
+    if noise is not None and options.robot_sigma is None:
+        options = replace(options, robot_sigma=(float(noise.position), float(noise.orientation)))
+    paths = sorted(rec.calibration_images, key=lambda p: natural_key(p.name))
+    corners, skipped, size = _detect_images(paths, target)
+    robot = None
     if rec.calibration_robot is not None:
-        from ..vision.handeye import calibrate_hand_eye
-
         flange = rec.calibration_robot
-        if len(flange.times) != len(images):
+        source = rec.root / "calibration" / "robot.csv"
+        if len(flange.times) != len(paths):
             raise ValueError(
-                f"{rec.root / 'calibration' / 'robot.csv'}: {len(flange.times)} flange poses "
-                f"for {len(images)} calibration images (need one per image, same order)"
+                f"{source}: {len(flange.times)} flange poses for {len(paths)} calibration "
+                "images (need one per image, same order)"
             )
-        used = np.asarray(result.used)
-        he = calibrate_hand_eye(flange.q[used], flange.p[used], result.R_c_t, result.t_c_t)
-        T_f_c = np.eye(4)
-        T_f_c[:3, :3], T_f_c[:3, 3] = he.R_f_c, he.t_f_c
-        camera = replace(camera, T_f_c=T_f_c)
-        hand_eye = {
-            "rotation_residual_deg": float(np.degrees(he.rotation_residual)),
-            "translation_residual_mm": float(he.translation_residual * 1e3),
-            "target_spread_position_mm": float(he.target_spread_position * 1e3),
-            "target_spread_rotation_deg": float(np.degrees(he.target_spread_rotation)),
-            "ok": bool(he.ok),
-        }
-    return CalibrationReport(
-        camera=camera,
-        views_used=[names[k] for k in result.used],
-        views_skipped=[(str(n), why) for n, why in result.skipped],
-        rms_px=float(result.calibration.rms_px),
-        hand_eye=hand_eye,
+        T = np.tile(np.eye(4), (len(paths), 1, 1))
+        T[:, :3, :3], T[:, :3, 3] = quat_to_matrix(flange.q), flange.p
+        robot = RobotPoses(T_b_f=T, files=None, lines=np.arange(len(paths)) + 2, path=source)
+    T_i_c = rec.camera.T_i_c if rec.camera is not None else None
+    return calibrate_views(
+        corners, target, size, robot=robot, options=options, skipped=skipped, T_i_c=T_i_c
     )

@@ -84,13 +84,25 @@ def step_simulate(
     )
 
 
-def step_calibrate(recording: Path):
-    """Calibrate the camera from ``calibration/`` and write ``camera.json``."""
-    from .calibrate import calibrate_recording
+def step_calibrate(folder: Path, options=None, **files):
+    """Calibrate a recording (from ``calibration/``) or a calibration folder on its own.
 
-    rec = read_recording(recording)
-    report = calibrate_recording(rec)
-    write_camera(Path(recording) / "camera.json", report.camera)
+    A folder with ``recording.json`` is a recording: ``camera.json`` is written into it.
+    Any other folder is a calibration folder (:func:`.calibrate.calibrate_folder`, whose
+    file options ``files`` takes): ``camera.json`` and ``calibration.json`` (the report)
+    are written into it.
+    """
+    from .calibrate import calibrate_folder, calibrate_recording
+
+    folder = Path(folder)
+    if (folder / "recording.json").is_file():
+        report = calibrate_recording(read_recording(folder), options)
+    else:
+        from ..io.formats import write_json
+
+        report = calibrate_folder(folder, options=options, **files)
+        write_json(folder / "calibration.json", report.to_json())
+    write_camera(folder / "camera.json", report.camera)
     return report
 
 
