@@ -6,11 +6,26 @@
 * :mod:`.constraints` - workspace, stand-off, field of view, velocity, acceleration, end
   pose, as normalised constraint values.
 * :mod:`.optimise` - penalty continuation with optimistix BFGS over several initial guesses.
+
+In the robot's joint space (the path a KUKA arm executes, orientation included):
+
+* :mod:`.joint_path` - ``q(t) = q0 + B-spline``, camera pose ``T_w_base FK(q) T_f_c``,
+  joint position/velocity/acceleration/jerk limits on a fine grid, field of view,
+  stand-off, keep-out, floor, optional end position;
+* :mod:`.joint_optimise` - augmented Lagrangian with optimistix BFGS, vmapped starts,
+  reporting the largest violation and the KKT stationarity.
 """
 
 from .constraints import CONSTRAINTS as CONSTRAINTS
 from .constraints import CellLimits as CellLimits
 from .constraints import constraint_values as constraint_values
+from .joint_optimise import JointPathDesign as JointPathDesign
+from .joint_optimise import design_joint_path as design_joint_path
+from .joint_optimise import evaluate_joint_path as evaluate_joint_path
+from .joint_path import JOINT_CONSTRAINTS as JOINT_CONSTRAINTS
+from .joint_path import JointPathModel as JointPathModel
+from .joint_path import RobotCell as RobotCell
+from .joint_path import joint_constraint_values as joint_constraint_values
 from .objectives import expected_error as expected_error
 from .objectives import expected_error_for_cameras as expected_error_for_cameras
 from .objectives import expected_errors_for_cameras as expected_errors_for_cameras

@@ -1,0 +1,156 @@
+"""Joint-space camera-path design: B-spline basis, path model, constraints, optimiser."""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from jaxtraj import dct_basis, look_at
+from jaxtraj.design import plausible_trajectories
+from jaxtraj.design.bspline import bspline_basis, clamped_knots
+from jaxtraj.design.joint_optimise import design_joint_path, evaluate_joint_path
+from jaxtraj.design.joint_path import (
+    JOINT_CONSTRAINTS,
+    JointPathModel,
+    RobotCell,
+    joint_constraint_values,
+)
+from jaxtraj.io.urdf import load_robot
+from jaxtraj.robot import camera_pose, solve_ik
+from jaxtraj.sim.scene import default_intrinsics
+
+# camera optical axis (z) out of the flange (flange x), image y down at the home pose
+T_F_C = np.array([[0, 0, 1, 0.08], [-1, 0, 0, 0.0], [0, -1, 0, 0.05], [0, 0, 0, 1.0]])
+
+
+@pytest.mark.parametrize("derivative", [0, 1, 2, 3])
+def test_bspline_basis_equals_scipy(derivative):
+    interpolate = pytest.importorskip("scipy.interpolate")
+    knots = clamped_knots(0.0, 10.0, 12, 5)
+    t = np.linspace(0.0, 10.0, 301)
+    ours = bspline_basis(t, knots, 5, derivative)
+    ref = np.stack(
+        [interpolate.BSpline(knots, np.eye(12)[j], 5)(t, nu=derivative) for j in range(12)], 1
+    )
+    np.testing.assert_allclose(ours, ref, atol=1e-12 * max(1.0, np.abs(ref).max()))
+    if derivative == 0:
+        np.testing.assert_allclose(ours.sum(axis=1), 1.0, atol=1e-14)
+
+
+def test_bspline_arguments_are_checked():
+    with pytest.raises(ValueError, match="needs at least 6 control points"):
+        clamped_knots(0.0, 1.0, 4, 5)
+    with pytest.raises(ValueError, match="expected t1 > t0"):
+        clamped_knots(1.0, 1.0, 8, 5)
+
+
+@pytest.fixture(scope="module")
+def scene():
+    """KR 16-2 at the world origin, a workpiece 2 m in front moving along a smooth
+    curve (0.3 x 0.3 x 0.2 m), the camera starting 1 m from it looking at it."""
+    kr16 = load_robot("kr16_2")
+    times = np.linspace(0.0, 10.0, 12)
+    s = times / 10
+    predicted = np.stack(
+        [
+            2.0 + 0.15 * np.sin(2 * np.pi * s),
+            0.3 * np.sin(np.pi * s) - 0.15,
+            0.8 + 0.1 * np.cos(np.pi * s),
+        ],
+        1,
+    )
+    c0 = predicted[0] + np.array([-0.9, 0.0, 0.35])
+    R_c_w, _ = look_at(jnp.asarray(c0), jnp.asarray(predicted[0]), jnp.asarray([0.0, 0, 1]))
+    T_w_c = np.eye(4)
+    T_w_c[:3, :3] = np.asarray(R_c_w).T
+    T_w_c[:3, 3] = c0
+    q0 = solve_ik(kr16, T_w_c @ np.linalg.inv(T_F_C), np.radians([0, -90, 90, 0, 45, 0]))
+    cell = RobotCell(
+        kr16, np.eye(4), T_F_C, default_intrinsics(), standoff=(0.6, 1.4), keep_out_radius=0.4
+    )
+    samples = plausible_trajectories(jax.random.PRNGKey(1), predicted, times, 2, extent=0.03)
+    return {
+        "kr16": kr16,
+        "times": times,
+        "predicted": predicted,
+        "q0": np.asarray(q0),
+        "cell": cell,
+        "samples": samples,
+        "basis": dct_basis(times, 6),
+        "T_w_c": T_w_c,
+    }
+
+
+def test_path_starts_at_q0_at_rest_and_fits_a_path(scene, rng):
+    model = JointPathModel.create(scene["times"], scene["q0"], n_control=8, grid_per_image=5)
+    theta = rng.normal(0.0, 0.1, model.shape)
+    for d in range(3):
+        start = np.asarray(model.joints(theta, d))[0]
+        np.testing.assert_allclose(start, scene["q0"] if d == 0 else 0.0, atol=1e-12)
+    assert np.abs(np.asarray(model.joints(theta, 3))[0]).max() > 1e-3  # jerk is free
+    # the grid contains the image times
+    q_grid = np.asarray(model.joints(theta))[::5]
+    np.testing.assert_allclose(q_grid, model.joints_at_images(theta), atol=1e-12)
+    np.testing.assert_allclose(model.fit(model.joints(theta)), theta, atol=1e-9)
+    with pytest.raises(ValueError, match="n_control: expected >= degree"):
+        JointPathModel.create(scene["times"], scene["q0"], n_control=6)
+    with pytest.raises(ValueError, match="strictly increasing"):
+        JointPathModel.create(scene["times"][::-1], scene["q0"])
+
+
+def test_constraint_values_against_direct_computation(scene, rng):
+    model = JointPathModel.create(scene["times"], scene["q0"], n_control=8, grid_per_image=5)
+    cell, kr16 = scene["cell"], scene["kr16"]
+    theta = rng.normal(0.0, 0.05, model.shape)
+    values = jax.jit(joint_constraint_values)(
+        model, theta, cell, scene["predicted"], scene["samples"]
+    )
+    assert set(values) == set(JOINT_CONSTRAINTS)
+    # velocity of joint j on the grid: the spline's derivative over its control points
+    knots = clamped_knots(0.0, 10.0, 8, 5)
+    control = np.concatenate([np.zeros((3, 6)), theta]) + scene["q0"]
+    grid = np.asarray(model.grid)
+    qd = np.stack([bspline_basis(grid, knots, 5, 1) @ control[:, j] for j in range(6)], 1)
+    expected = (qd / np.asarray(kr16.velocity)) ** 2 - 1
+    np.testing.assert_allclose(values["joint_velocity"], expected.ravel(), atol=1e-12)
+    # stand-off and field of view at the images from the camera poses
+    q_img = np.asarray(model.joints_at_images(theta))
+    T = np.stack([np.asarray(camera_pose(kr16, q, T_F_C)) for q in q_img])
+    d = np.linalg.norm(T[:, :3, 3] - scene["predicted"], axis=1)
+    np.testing.assert_allclose(values["standoff"][::2], (0.6 - d) / 0.6, atol=1e-12)
+    x_c = np.einsum("fji,fj->fi", T[:, :3, :3], scene["samples"][0] - T[:, :3, 3])
+    angle = np.arctan2(np.linalg.norm(x_c[:, :2], axis=1), x_c[:, 2])
+    np.testing.assert_allclose(values["field_of_view"][: len(d)], angle / 0.28 - 1, atol=1e-12)
+    assert values["end"][0] == -1.0  # no end constraint unless asked
+
+
+def test_design_converges_and_holds_on_a_10x_finer_grid(scene, rng):
+    """Maximise eta under every limit: each start converges (violation and KKT
+    stationarity below 1e-3), the constraints hold on a grid 10x finer than the design's,
+    and the expected error falls; a warm re-plan from the design converges too."""
+    times, q0 = scene["times"], scene["q0"]
+    model = JointPathModel.create(times, q0, n_control=8, grid_per_image=10)
+    cell, pred, samples, basis = scene["cell"], scene["predicted"], scene["samples"], scene["basis"]
+    inits = jnp.asarray(np.stack([np.zeros(model.shape), rng.normal(0, 0.02, model.shape)]))
+    kwargs = {"objective": "eta", "penalties": (10.0, 30.0, 100.0, 100.0, 100.0, 100.0)}
+    best, designs = design_joint_path(model, cell, pred, samples, basis, inits, **kwargs)
+    assert np.all(np.asarray(designs.converged))
+    assert np.all(np.asarray(designs.max_violation) <= 1e-3)
+    assert np.all(np.asarray(designs.stationarity) <= 1e-3)
+    fine = JointPathModel.create(times, q0, n_control=8, grid_per_image=100)
+    values = joint_constraint_values(fine, best.theta, cell, pred, samples)
+    worst = {k: float(jnp.max(v)) for k, v in values.items()}
+    assert max(worst.values()) <= 2e-3, worst
+    assert np.any(np.asarray(best.violation) > -0.02)  # some limit is active
+    eta = evaluate_joint_path(model, jnp.stack([inits[0], best.theta]), cell, pred, samples, basis)
+    assert float(eta.expected_mean_error[1]) < 0.5 * float(eta.expected_mean_error[0])
+    warm, _ = design_joint_path(
+        model, cell, pred + 0.01, samples + 0.01, basis, jnp.stack([best.theta] * 2), **kwargs
+    )
+    assert bool(warm.converged)
+    with pytest.raises(ValueError, match=r"inits: expected shape \(B, 5, 6\)"):
+        design_joint_path(model, cell, pred, samples, basis, inits[:, :2], **kwargs)
+    with pytest.raises(ValueError, match="objective: expected one of"):
+        design_joint_path(model, cell, pred, samples, basis, inits, objective="speed")
