@@ -203,7 +203,7 @@ def _hand_eye(result, target, T_b_f, options: CalibrationOptions, robot_source: 
             methods[m] = {"error": "non-finite result"}
             continue
         c = consistency(M, T_c_t, X, cov, options.robot_sigma)
-        methods[m] = {**_consistency_dict(c), "score": _score(c)}
+        methods[m] = {**_consistency_dict(c), "score": _score(c), "T_x": X.tolist()}
         solutions[m] = (X, B, c)
     if not solutions:
         raise ValueError(f"{robot_source}: every OpenCV hand-eye method failed: {methods}")
