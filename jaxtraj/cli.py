@@ -7,6 +7,7 @@ Sub-commands (``jaxtraj COMMAND --help`` explains each option):
     reconstruct  detect the markers, measure the trajectories and the 6-DoF pose
     evaluate     compare the results with the simulation's ground truth
     batch        many point tracks from .npy files: chunked, sharded, resumable
+    design       a joint-space camera path for a robot cell (CELL.json or --example)
     demo         all of the above on a simulated cell (``--paper``: the paper's
                  section-5 experiment on ideal detections instead)
 
@@ -278,6 +279,31 @@ def build_parser() -> argparse.ArgumentParser:
     batch.add_argument("--coordinator", default=None, help="multi-host: HOST:PORT of process 0")
     batch.add_argument("--num-processes", type=_positive_int, default=None, help="multi-host")
     batch.add_argument("--process-id", type=int, default=None, help="multi-host: this process")
+
+    design = sub.add_parser(
+        "design",
+        help="design a camera path in the camera robot's joint space for a cell",
+        description="Designs the camera robot's joint path (KUKA A1..A6) that measures the "
+        "predicted workpiece best within the joint position/speed/acceleration/jerk limits, "
+        "the field of view, stand-off, keep-out and floor. Writes OUT/joint_path.csv, "
+        "joint_path_ipo.csv (12 ms), camera_poses.tum, design.json and plots. Exits 1 if no "
+        "start converged to a feasible design.",
+    )
+    design.add_argument("cell", nargs="?", type=Path, help="CELL.json (see jaxtraj.io.cell)")
+    design.add_argument("out", type=Path, help="output folder")
+    design.add_argument(
+        "--example",
+        action="store_true",
+        help="the built-in simulated cell (KR 16-2 camera robot, KR 60-3 workpiece robot) "
+        "instead of CELL.json",
+    )
+    design.add_argument(
+        "--frames", type=_positive_int, default=60, help="--example: images (default 60)"
+    )
+    design.add_argument(
+        "--starts", type=_positive_int, default=None, help="initial guesses (default 8)"
+    )
+    design.add_argument("--no-plots", action="store_true", help="skip the PNG figures")
 
     demo = sub.add_parser(
         "demo",

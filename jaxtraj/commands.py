@@ -280,6 +280,28 @@ def _batch(args: Namespace, progress) -> int:
     return EXIT_OK
 
 
+def _design(args: Namespace, progress) -> int:
+    from .design_command import design_cell, example_cell, write_design
+    from .io.cell import read_cell
+
+    if args.example == (args.cell is not None):
+        raise ValueError("give either CELL.json or --example (not both, not neither)")
+    spec = example_cell(frames=args.frames) if args.example else read_cell(args.cell)
+    if args.starts is not None:
+        spec.starts = args.starts
+    result = design_cell(spec)
+    write_design(args.out, spec, result, plots=not args.no_plots)
+    best = result["best"]
+    print(
+        f"design: expected mean error {1000 * float(best.expected_mean_error):.2f} mm, "
+        f"max violation {float(best.max_violation):.2e}, stationarity "
+        f"{float(best.stationarity):.2e}, converged starts "
+        f"{int(result['designs'].converged.sum())}/{spec.starts}, "
+        f"{result['seconds']:.1f} s -> {args.out}"
+    )
+    return EXIT_OK if bool(best.feasible) else EXIT_FAILED
+
+
 _COMMANDS = {
     "simulate": _simulate,
     "calibrate": _calibrate,
@@ -288,6 +310,7 @@ _COMMANDS = {
     "evaluate": _evaluate,
     "batch": _batch,
     "demo": _demo,
+    "design": _design,
 }
 
 

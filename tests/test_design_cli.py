@@ -1,0 +1,86 @@
+"""``jaxtraj design``: CELL.json checks and bad input (exit 2, one clear message).
+
+The design itself is tested in test_design_joint.py; these cases fail before it runs.
+"""
+
+from __future__ import annotations
+
+import json
+import re
+
+import numpy as np
+import pytest
+
+from jaxtraj.cli import main
+from jaxtraj.design_command import example_cell
+from jaxtraj.io.cell import cell_from_dict, read_cell
+
+
+def _cell(**changes) -> dict:
+    data = example_cell(frames=12).to_dict()
+    data.update(changes)
+    return data
+
+
+def _run(tmp_path, capsys, data=None, text=None, extra=()):
+    path = tmp_path / "cell.json"
+    path.write_text(text if text is not None else json.dumps(data, indent=2))
+    code = main(["design", str(path), str(tmp_path / "out"), *extra])
+    return code, capsys.readouterr().err.strip()
+
+
+def test_example_cell_round_trips_through_json(tmp_path):
+    spec = example_cell(frames=12)
+    path = tmp_path / "cell.json"
+    path.write_text(json.dumps(spec.to_dict()))
+    again = read_cell(path)
+    np.testing.assert_allclose(again.predicted, spec.predicted, atol=1e-12)
+    np.testing.assert_allclose(again.camera_start, spec.camera_start, atol=1e-12)
+    np.testing.assert_allclose(again.half_fov, spec.half_fov, atol=1e-12)
+    assert again.robot == "kr16_2" and again.k == 8 and again.starts == 8
+    # the workpiece robot's curve: about 0.4-0.6 m across, 1.6-2.1 m in front of the KR 16
+    extent = np.ptp(spec.predicted, axis=0)
+    assert 0.3 < np.max(extent) < 0.8
+    assert 1.5 < spec.predicted[:, 0].min() and spec.predicted[:, 0].max() < 2.2
+
+
+@pytest.mark.parametrize(
+    "kind, pattern",
+    [
+        ("json", r"cell\.json, line 3: malformed JSON"),
+        ("robot", r"cell\.json: robot: unknown robot 'kr5'; known robots: kr16_2, kr60_3"),
+        ("empty", r"'prediction' is empty"),
+        ("limits", r"start: joint_a2 = 50\.0 deg is outside its limits -155 \.\. 35 deg"),
+        ("key", r"unknown key\(s\) \['robt'\]"),
+        ("shape", r"'T_f_c': expected shape \(4, 4\)"),
+    ],
+)
+def test_bad_input_exits_2_with_one_clear_message(tmp_path, capsys, kind, pattern):
+    text = None
+    data = _cell()
+    if kind == "json":
+        text = '{\n  "robot": "kr16_2",\n  "K": [1, 2,,\n}'
+    elif kind == "robot":
+        data["robot"] = "kr5"
+    elif kind == "empty":
+        data["prediction"] = {"times": [], "points": []}
+    elif kind == "limits":
+        data["start"] = {"q_deg": [0, 50, 90, 0, 0, 0]}
+    elif kind == "key":
+        data["robt"] = "kr16_2"
+    elif kind == "shape":
+        data["T_f_c"] = np.eye(3).tolist()
+    code, err = _run(tmp_path, capsys, data, text)
+    assert code == 2
+    assert err.startswith("jaxtraj design: error: ") and len(err.splitlines()) == 1
+    assert re.search(pattern, err), err
+    assert not (tmp_path / "out").exists()
+
+
+def test_cell_or_example_but_not_both(tmp_path, capsys):
+    assert main(["design", str(tmp_path / "out")]) == 2
+    assert "give either CELL.json or --example" in capsys.readouterr().err
+    with pytest.raises(ValueError, match=r"'design\.objective'"):
+        cell_from_dict(_cell(design={"objective": "speed"}))
+    with pytest.raises(ValueError, match=r"'estimator\.method': only 'dct'"):
+        cell_from_dict(_cell(estimator={"method": "smoother"}))
