@@ -21,6 +21,9 @@ from .camera import undistort_points as undistort_points
 from .constraints import block_diagonal_Q as block_diagonal_Q
 from .constraints import ray_constraints as ray_constraints
 from .constraints import theta_matrix as theta_matrix
+from .estimators.estimate import PointEstimate as PointEstimate
+from .estimators.estimate import depth_uncertainty as depth_uncertainty
+from .estimators.estimate import estimate_points as estimate_points
 from .rigid import fit_rigid as fit_rigid
 from .solve import Reconstruction as Reconstruction
 from .solve import Status as Status

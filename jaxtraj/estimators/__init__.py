@@ -1,5 +1,7 @@
 """Estimators beyond the plain DCT least squares of the paper.
 
+* :mod:`.estimate` - :func:`estimate_points`, the one call: model chosen per point,
+  along-ray uncertainty, DEGENERATE where the depth is not determined.
 * :mod:`.smoothness` - smoothness prior (trajectory filter / state-space smoother), no k.
 * :mod:`.filtering` - Kalman filter / RTS smoother from a known start (slow cameras).
 * :mod:`.select_k` - automatic k: cross-validation and conditioning-gain bound.
@@ -13,6 +15,9 @@
 from .covariance import ReconstructionCovariance as ReconstructionCovariance
 from .covariance import dct_covariance as dct_covariance
 from .covariance import points_covariance as points_covariance
+from .estimate import PointEstimate as PointEstimate
+from .estimate import depth_uncertainty as depth_uncertainty
+from .estimate import estimate_points as estimate_points
 from .filtering import filter_points as filter_points
 from .filtering import filter_trajectory as filter_trajectory
 from .joint_pose import RigidTrajectory as RigidTrajectory
