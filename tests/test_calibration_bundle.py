@@ -75,7 +75,10 @@ def _report(s, level):
     corners = {f"view_{k}.png": (np.arange(len(BOARD)), uv) for k, uv in enumerate(s.uv)}
     robot = RobotPoses(s.T_b_f, None, np.arange(len(s.uv)) + 2, Path("robot.csv"))
     sigma = (level * 1e-3, np.radians(level / 10))
-    options = CalibrationOptions(robot_sigma=sigma, eye_to_hand=not s.eye_in_hand)
+    # Gauss-Newton from OpenCV's start: the LM minimum to 1e-7 mm in a quarter of the steps.
+    options = CalibrationOptions(
+        robot_sigma=sigma, eye_to_hand=not s.eye_in_hand, solver="gauss-newton"
+    )
     return calibrate_views(corners, TARGET, s.image_size, robot=robot, options=options)
 
 
@@ -156,6 +159,8 @@ def test_jit_and_float32_and_errors():
     w = np.ones(s.uv.shape[:2])
     with pytest.raises(ValueError, match=r"T_b_f: expected robot poses .* \(12, 4, 4\)"):
         refine_hand_eye(BOARD, s.uv, w, s.T_b_f[:3], s.K, s.dist, s.T_x, s.T_b)
+    with pytest.raises(ValueError, match="solver"):
+        refine_hand_eye(BOARD, s.uv, w, s.T_b_f, s.K, s.dist, s.T_x, s.T_b, solver="bfgs")
     with pytest.raises(ValueError, match="loss"):
         refine_hand_eye(BOARD, s.uv, w, s.T_b_f, s.K, s.dist, s.T_x, s.T_b, loss="tukey")
     with pytest.raises(ValueError, match="pixel_sigma"):

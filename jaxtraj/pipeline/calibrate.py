@@ -66,6 +66,8 @@ class CalibrationOptions:
         max_position_spread, max_rotation_spread: acceptance limits [m], [rad] on the
             spread of the implied target pose; None: derived from the data.
         min_corners: fewest target points a view needs.
+        solver: the bundle adjustment's optimiser (``"lm"``, ``"gauss-newton"``,
+            ``"dogleg"``; :func:`jaxtraj.calibration.refine_hand_eye`).
     """
 
     robot_format: str = "auto"
@@ -78,6 +80,7 @@ class CalibrationOptions:
     max_position_spread: float | None = None
     max_rotation_spread: float | None = None
     min_corners: int = 6
+    solver: str = "lm"
 
 
 @dataclass(frozen=True)
@@ -232,6 +235,7 @@ def _hand_eye(result, target, T_b_f, options: CalibrationOptions, robot_source: 
             robot_rotation_sigma=options.robot_sigma[1],
             loss="huber",
             loss_scale=3.0 * max(rms, 0.05),
+            solver=options.solver,
         )  # fmt: skip
         K, dist = np.asarray(r.K), np.asarray(r.dist)
         X, B = np.asarray(r.T_x), np.asarray(r.T_b)

@@ -81,6 +81,7 @@ def simulate_views(
     distance: tuple[float, float] = (0.45, 0.7),
     max_tilt: float = 0.6,
     image_size: tuple[int, int] = (640, 480),
+    inside: float = 1.0,
 ) -> CalibrationViews:
     """Draw a calibration set (see the module doc).
 
@@ -93,6 +94,8 @@ def simulate_views(
         distance: camera-to-target distance range [m]; max_tilt: largest angle between
             the viewing direction and the target normal [rad].
         image_size: (width, height) [px].
+        inside: fraction of the target points that must be in the image in every view
+            (below 1: partial views; ``uv`` still holds every point's projection).
     """
     import cv2
 
@@ -123,7 +126,7 @@ def simulate_views(
         Tct = np.linalg.inv(T_t_c)
         uv, _ = cv2.projectPoints(P, cv2.Rodrigues(Tct[:3, :3])[0], Tct[:3, 3], K, dist)
         uv = uv.reshape(-1, 2)
-        if not np.all((uv > 10) & (uv < np.array([W - 10, H - 10]))):
+        if np.mean(np.all((uv > 10) & (uv < np.array([W - 10, H - 10])), 1)) < inside:
             continue
         if eye_in_hand:  # T_b_c = B T_t_c = T_b_f X
             Tbf = B @ T_t_c @ np.linalg.inv(X)
