@@ -9,6 +9,8 @@ from .bvh import Y_UP_TO_Z_UP as Y_UP_TO_Z_UP
 from .bvh import BVHMotion as BVHMotion
 from .bvh import load_bvh as load_bvh
 from .bvh import parse_bvh as parse_bvh
+from .corners import read_corners as read_corners
+from .corners import write_corners as write_corners
 from .euroc import EurocRecording as EurocRecording
 from .euroc import ground_truth_as_robot as ground_truth_as_robot
 from .euroc import read_euroc as read_euroc
@@ -40,6 +42,8 @@ from .records import CameraCalibration as CameraCalibration
 from .records import Detections as Detections
 from .records import ObjectModel as ObjectModel
 from .records import PoseStream as PoseStream
+from .robot_poses import RobotPoses as RobotPoses
+from .robot_poses import read_robot_poses as read_robot_poses
 from .tables import RecordingError as RecordingError
 from .tables import atomic_folder as atomic_folder
 from .tables import atomic_write_text as atomic_write_text

@@ -21,9 +21,13 @@ __all__ = [
     "METHODS",
     "HandEyeResult",
     "calibrate_hand_eye",
+    "consistency",
     "hand_eye_residuals",
+    "mean_pose",
+    "motion_axes_check",
     "solve_hand_eye",
     "target_poses_from_views",
+    "view_pose_covariances",
 ]
 
 #: OpenCV's hand-eye methods: the five of ``calibrateHandEye`` (AX = XB) and the two of
