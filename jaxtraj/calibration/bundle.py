@@ -49,6 +49,7 @@ PARAMETER_NAMES = (
 )  # fmt: skip
 
 _LOSSES = ("l2", "huber", "cauchy")
+_VIEW_BUCKET = 8
 _SOLVERS = {
     "lm": optx.LevenbergMarquardt,
     "gauss-newton": optx.GaussNewton,
@@ -310,7 +311,8 @@ def refine_hand_eye(
 
     Returns:
         a :class:`HandEyeBundle`; the dtype is that of ``uv``. One compiled program per
-        (views, corners, loss, dtype), shared by both set-ups.
+        (views rounded up to a multiple of 8, corners, loss, solver, dtype), shared by
+        both set-ups.
     """
     uv = _check("uv", uv, (None, None, 2), "pixels (V views, N corners)")
     V, N = uv.shape[:2]
@@ -345,7 +347,16 @@ def refine_hand_eye(
     sigmas = tuple(
         jnp.asarray(v, dt) for v in (pixel_sigma, robot_position_sigma, robot_rotation_sigma)
     )
-    return _refine(
+    # Views padded to a multiple of 8 (zero weight, a copy of the first robot pose; their
+    # corrections only meet their prior and stay 0): one compiled program serves 9-16 views.
+    pad = -V % _VIEW_BUCKET
+    weights = np.asarray(weights, np.float64)
+    T_b_f = np.asarray(T_b_f, np.float64)
+    if pad:
+        uv = jnp.concatenate([uv, jnp.zeros((pad, N, 2), dt)])
+        weights = np.concatenate([weights, np.zeros((pad, N))])
+        T_b_f = np.concatenate([T_b_f, np.repeat(T_b_f[:1], pad, 0)])
+    out = _refine(
         start,
         jnp.asarray(object_points, dt),
         uv,
@@ -356,3 +367,10 @@ def refine_hand_eye(
         jnp.asarray(bool(eye_in_hand)),
         (loss, solver, max_steps, float(rtol), float(atol)),
     )
+    if pad:
+        out = eqx.tree_at(
+            lambda r: (r.residuals, r.robot_corrections),
+            out,
+            (out.residuals[:V], out.robot_corrections[:V]),
+        )
+    return out
