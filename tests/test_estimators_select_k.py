@@ -1,4 +1,4 @@
-"""Automatic k: masked solves equal separate fits, gains equal the solver's, the CV
+"""Automatic k: solves from one factor equal separate fits, gains equal the solver's, the CV
 choice is near the error-optimal k (random and fast cameras), batching and bad inputs."""
 
 from __future__ import annotations
@@ -9,8 +9,8 @@ import pytest
 
 import jaxtraj as jt
 from jaxtraj.estimators import select_k_cv, select_k_gain
-from jaxtraj.estimators.select_k import _masked_solve
-from jaxtraj.solve import normal_equations
+from jaxtraj.estimators.select_k import _prefix_solve
+from jaxtraj.solve import _factorise, normal_equations
 from tests.test_estimators_scenes import rmse, robot_scene
 
 F = 60
@@ -20,17 +20,21 @@ GAIN = jax.jit(lambda P, uv, t: select_k_gain(P, uv, t, KS, max_gain=3.0))
 DCT = jax.jit(lambda P, uv, b: jt.reconstruct_points(P, uv[None], b).points[0], static_argnums=())
 # the solver's conditioning gain, compiled (run eagerly, every k costs ~70 small compilations)
 SOLVER_GAIN = jax.jit(lambda P, uv, b: jt.reconstruct(P, uv, b).gain)
+PREFIX = jax.jit(_prefix_solve)
 
 
-def test_masked_solve_equals_k_column_fit(rng):
+def test_prefix_solve_equals_k_column_fit(rng):
     s = robot_scene(rng, F=F, mode="random", noise=0.4)
     big = jt.dct_basis(s["times"], 12)
     N, b = normal_equations(s["P"], s["uv"], big)
-    mask = np.repeat((np.arange(12) < 7).astype(float), 3)
-    beta, _, _ = _masked_solve(N, b, mask)
-    ref = jt.reconstruct(s["P"], s["uv"], big[:, :7]).coeffs
-    np.testing.assert_allclose(np.asarray(beta[:21]).reshape(7, 3), np.asarray(ref), rtol=1e-9)
-    assert np.all(np.asarray(beta[21:]) == 0.0)
+    W, d = jax.jit(_factorise)(N)  # the factor of the 12-column system serves every k
+    for k in (4, 7, 12):
+        beta = PREFIX(W, d, N, b, k)
+        ref = jt.reconstruct(s["P"], s["uv"], big[:, :k]).coeffs
+        np.testing.assert_allclose(
+            np.asarray(beta[: 3 * k]).reshape(k, 3), np.asarray(ref), rtol=1e-9
+        )
+        assert np.all(np.asarray(beta[3 * k :]) == 0.0)
 
 
 def test_gains_equal_solver_gain(rng):

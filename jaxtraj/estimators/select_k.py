@@ -7,10 +7,10 @@
   (Valmadre & Lucey, CVPR 2012): the gain bounds the amplification of the
   basis-truncation error, so beyond it a larger k no longer pays.
 
-Both are batched: the normal equations are assembled once per fold for the largest k,
-and every candidate k is solved from them by masking coefficients (a masked coefficient
-gets an identity row, which leaves the others exactly as in a k-column fit), all under
-one ``vmap``. A held-out reprojection error cannot see a collapse of the estimate along
+Both are batched: the normal equations are assembled and factorised once per fold for the
+largest k, and every candidate k is solved from the leading block of that factor (the
+factor of a leading block is the leading block of the factor), all under one ``vmap``,
+without LAPACK calls. A held-out reprojection error cannot see a collapse of the estimate along
 the viewing rays (degenerate camera paths reproject perfectly): with fast cameras it keeps
 falling with k while the conditioning gain, and with it the 3D error, rise steeply.
 ``select_k_cv`` therefore weights the held-out error by the squared gain beyond a healthy
@@ -23,12 +23,12 @@ from __future__ import annotations
 import equinox as eqx
 import jax
 import jax.numpy as jnp
-import jax.scipy.linalg as jsl
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float, Int
 
+from .._spd import matvec, vecmat
 from ..basis import dct_basis
-from ..solve import _frame_blocks, _kron_sum
+from ..solve import _factorise, _frame_blocks, _frame_spread, _gain_bound, _kron_sum
 from ._common import as_float, homogeneous, validate_track
 
 __all__ = ["KSelection", "select_k_cv", "select_k_gain"]
@@ -75,47 +75,38 @@ def _check(P, uv, times, weights, ks, folds=2):
     return tuple(int(k) for k in ks)
 
 
-def _masked_solve(N, b, mask):
-    """Solve the k-column system embedded in the K-column one (mask: (3K,) 0/1)."""
-    n = N.shape[0]
-    dtype = N.dtype
-    Nm = N * mask[:, None] * mask[None, :] + jnp.diag(1.0 - mask)
+def _prefix_solve(W, d, N, b, k):
+    """Solve the leading ``3k x 3k`` block of ``N beta = b`` (the fit with the first k
+    basis vectors) from the factor ``(W, d)`` of the whole N (:func:`jaxtraj.solve._factorise`).
+
+    The leading block of an (inverse) Cholesky factor is the factor of the leading block, and
+    the equilibration is diagonal, so one factorisation serves every candidate k: each solve
+    is two masked triangular products, plus one step of iterative refinement as in
+    :func:`jaxtraj.reconstruct`. Entries beyond ``3k`` are zero.
+    """
+    mask = (jnp.arange(N.shape[0]) < 3 * k).astype(N.dtype)
+
+    def solve(rhs):
+        y = matvec(W, d * rhs * mask)  # rows < 3k only involve columns < 3k
+        return d * vecmat(y * mask, W) * mask
+
     bm = b * mask
-    d = jax.lax.rsqrt(jnp.maximum(jnp.diag(Nm), jnp.finfo(dtype).tiny))
-    Ns = Nm * d[:, None] * d[None, :] + 16 * jnp.finfo(dtype).eps * jnp.eye(n, dtype=dtype)
-    chol = jnp.linalg.cholesky(Ns)
-    beta = d * jsl.cho_solve((chol, True), d * bm)
-    beta = beta + d * jsl.cho_solve((chol, True), d * (bm - Nm @ beta))
-    return beta, chol, d
+    beta = solve(bm)
+    return beta + solve(bm - matvec(N, beta))
 
 
 def _gains(P, uv, basis, w, ks):
-    """Conditioning gain ``||Theta N^-1 Theta^T A||_2`` of every candidate k.
+    """Conditioning gain of every candidate k, from one factorisation of the K-column system.
 
-    As in :mod:`jaxtraj.solve`: with ``Theta^T Theta = R^T R`` the squared gain is the
-    largest eigenvalue of ``Z H Z^T``, ``Z = R N^-1``, ``H = Theta^T A^2 Theta``. Masked
-    coefficients get identity rows in ``R`` and ``N`` and zero rows in ``H``, which adds
-    only zero eigenvalues.
+    The same bound as the solver's (:func:`jaxtraj.solve._gain_bound`, equal to it up to
+    rounding): with ``Theta^T Theta = R^T R``, ``sqrt(beta lambda_max(R N^-1 R^T))`` with
+    the leading blocks of ``R`` and of the factor of ``N`` for each k.
     """
-    QtQ, _, _, _ = _frame_blocks(P, uv, w)
-    K = basis.shape[1]
+    QtQ, _, Q, _ = _frame_blocks(P, uv, w)
     N = _kron_sum(basis, QtQ)
-    H = _kron_sum(basis, QtQ @ QtQ)
-    gram = basis.T @ basis
-    eye3 = jnp.eye(3, dtype=P.dtype)
-
-    def gain(k):
-        cols = (jnp.arange(K) < k).astype(P.dtype)
-        mask = jnp.repeat(cols, 3)
-        _, chol, d = _masked_solve(N, jnp.zeros(3 * K, P.dtype), mask)
-        Gm = gram * cols[:, None] * cols[None, :] + jnp.diag(1.0 - cols)
-        R = jnp.kron(jnp.linalg.cholesky(Gm).T, eye3)
-        Zt = d[:, None] * jsl.cho_solve((chol, True), d[:, None] * R.T)
-        S = Zt.T @ (H * mask[:, None] * mask[None, :]) @ Zt
-        lam = jnp.linalg.eigvalsh(0.5 * (S + S.T))[-1]
-        return jnp.sqrt(jnp.maximum(lam, 0.0))
-
-    return jax.vmap(gain)(jnp.asarray(ks))
+    W, d = _factorise(N)
+    spread_hi = _frame_spread(Q, w)[1]
+    return jax.vmap(lambda k: _gain_bound(basis, W, d, spread_hi, k=k))(jnp.asarray(ks))
 
 
 def select_k_cv(
@@ -180,11 +171,11 @@ def select_k_cv(
         QtQ, Qtq, _, _ = _frame_blocks(P, uv, w_train)
         N = _kron_sum(basis, QtQ)
         b = (basis.T @ Qtq).reshape(-1)
+        W, d = _factorise(N)  # one factorisation for every candidate k
         n_train = jnp.sum(w_train > 0)
 
         def err(k):
-            mask = jnp.repeat((jnp.arange(K) < k).astype(P.dtype), 3)
-            beta, _, _ = _masked_solve(N, b, mask)
+            beta = _prefix_solve(W, d, N, b, k)
             h = homogeneous(P, basis @ beta.reshape(K, 3))
             e = h[:, :2] / h[:, 2:3] - uv
             sq = jnp.where(held & obs, jnp.sum(e * e, axis=1), 0.0)

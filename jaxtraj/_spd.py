@@ -1,0 +1,152 @@
+"""Symmetric positive-definite algebra for the batched solvers, without LAPACK calls.
+
+Every function works on one small matrix and is written in broadcast-and-sum form, so that
+under ``jax.vmap`` (many points sharing cameras) it becomes elementwise operations and
+reductions rather than batched matrix-vector products or batched LAPACK calls. jaxlib 0.10
+runs batched CPU LAPACK calls on XLA's thread pool, where small ones got slower and vmapped
+solves were seen to hang on 2 cores (jax-ml/jax#36927); nothing here makes such a call.
+
+* :func:`inverse_cholesky` - ``W = L^-1`` of ``A = L L^T`` by bordering, so that every
+  later solve is two triangular matrix-vector products.
+* :func:`top_eigenvalue` - the largest eigenvalue of a symmetric positive semi-definite
+  operator given as a matrix-vector product: a few Lanczos steps with full
+  re-orthogonalisation and a Sturm bisection of the small tridiagonal matrix. Its result
+  is a Ritz value, so it never exceeds the true eigenvalue (up to rounding).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import jax
+import jax.numpy as jnp
+from jaxtyping import Array, Float
+
+__all__ = ["inverse_cholesky", "matvec", "top_eigenvalue", "vecmat"]
+
+#: up to this size the bordering steps are unrolled with exact static slices (fewest
+#: operations); larger matrices use a ``fori_loop`` over masked rows (smaller programs)
+UNROLL_MAX = 48
+
+
+def matvec(M: Float[Array, "m n"], x: Float[Array, " n"]) -> Float[Array, " m"]:
+    """``M @ x`` as a broadcast-and-sum (a fused reduction under vmap)."""
+    return jnp.sum(M * x[None, :], axis=1)
+
+
+def vecmat(x: Float[Array, " m"], M: Float[Array, "m n"]) -> Float[Array, " n"]:
+    """``x @ M`` (that is ``M^T x``) as a broadcast-and-sum."""
+    return jnp.sum(x[:, None] * M, axis=0)
+
+
+def _pivot(a_ii, ll, eps):
+    # Clamp at rounding level so a (numerically) singular matrix gives a huge but finite
+    # inverse instead of NaN; callers judge singularity from the pivots.
+    return jnp.sqrt(jnp.maximum(a_ii - ll, eps * jnp.abs(a_ii)))
+
+
+def inverse_cholesky(A: Float[Array, "n n"]) -> Float[Array, "n n"]:
+    """Lower-triangular ``W = L^-1`` with ``A = L L^T`` (A symmetric positive definite).
+
+    Bordering: with ``W_i`` the inverse factor of the leading ``i x i`` block, row ``i`` of
+    ``L`` is ``l = W_i a`` (``a = A[:i, i]``), its pivot ``d = sqrt(A_ii - l.l)``, and row
+    ``i`` of ``W`` is ``[-(l^T W_i) / d, 1 / d]``. ``A^-1 = W^T W``, ``1 / W_ii = L_ii``.
+    Pivots below ``eps * A_ii`` are clamped there (singular input: huge, finite ``W``).
+    About ``2 n^3 / 3`` multiply-adds; differentiable.
+    """
+    n = A.shape[-1]
+    eps = jnp.finfo(A.dtype).eps
+    if n <= UNROLL_MAX:
+        d0 = _pivot(A[0, 0], 0.0, eps)
+        W = jnp.zeros_like(A).at[0, 0].set(1.0 / d0)
+        for i in range(1, n):
+            Wi = W[:i, :i]
+            l = matvec(Wi, A[:i, i])
+            d = _pivot(A[i, i], jnp.sum(l * l), eps)
+            row = jnp.concatenate([-vecmat(l, Wi) / d, (1.0 / d)[None]])
+            W = jax.lax.dynamic_update_slice(W, row[None, :], (i, 0))
+        return W
+
+    idx = jnp.arange(n)
+
+    def step(i, W):
+        a = jnp.where(idx < i, A[:, i], 0.0)  # rows >= i of W are still zero
+        l = matvec(W, a)
+        d = _pivot(A[i, i], jnp.sum(l * l), eps)
+        row = jnp.where(idx == i, 1.0 / d, -vecmat(l, W) / d)
+        return jax.lax.dynamic_update_slice(W, row[None, :], (i, 0))
+
+    return jax.lax.fori_loop(0, n, step, jnp.zeros_like(A))
+
+
+def _sturm_top(alpha: Array, beta: Array, iters: int) -> Array:
+    """Largest eigenvalue of the symmetric tridiagonal matrix (diagonal ``alpha`` (m,),
+    off-diagonal ``beta`` (m-1,)) by bisection on the Sturm count; the lower end of the
+    final bracket (a lower bound)."""
+    m = alpha.shape[0]
+    tiny = jnp.finfo(alpha.dtype).tiny
+    b2 = beta * beta
+    ab = jnp.abs(beta)
+    radius = jnp.concatenate([ab, jnp.zeros(1, alpha.dtype)]) + jnp.concatenate(
+        [jnp.zeros(1, alpha.dtype), ab]
+    )
+    lo = jnp.max(alpha)  # a Rayleigh quotient of T: below its top eigenvalue
+    hi = jnp.maximum(jnp.max(alpha + radius), lo)  # Gershgorin
+
+    def below(x):
+        # number of eigenvalues below x (negative pivots of T - x I = L D L^T)
+        q = alpha[0] - x
+        count = (q < 0).astype(jnp.int32)
+        for i in range(1, m):
+            q = jnp.where(q == 0, -tiny, q)
+            q = alpha[i] - x - b2[i - 1] / q
+            count = count + (q < 0)
+        return count
+
+    def step(_, bracket):
+        lo, hi = bracket
+        mid = 0.5 * (lo + hi)
+        all_below = below(mid) == m
+        return jnp.where(all_below, lo, mid), jnp.where(all_below, mid, hi)
+
+    lo, _ = jax.lax.fori_loop(0, iters, step, (lo, hi))
+    return lo
+
+
+def top_eigenvalue(
+    apply: Callable[[Array], Array], v0: Float[Array, " n"], steps: int = 8
+) -> Float[Array, ""]:
+    """Largest eigenvalue of a symmetric positive semi-definite ``n x n`` operator.
+
+    ``min(steps, n)`` Lanczos steps from ``v0`` (re-orthogonalised against every earlier
+    vector, so the tridiagonal matrix is a true Rayleigh-Ritz projection), then bisection of
+    its top eigenvalue. The result is at most the true one (up to rounding) and, for
+    ``steps >= n``, equal to it; a few steps suffice when the top eigenvalue is separated
+    or when the spectrum near it is tight (then every Ritz value there is close).
+    """
+    n = v0.shape[0]
+    m = min(steps, n)
+    dtype = v0.dtype
+    eps = jnp.finfo(dtype).eps
+    q = v0 / jnp.linalg.norm(v0)
+    basis, alphas, betas = [q], [], []
+    scale = jnp.zeros((), dtype)
+    for j in range(m):
+        w = apply(q)
+        a = jnp.sum(q * w)
+        alphas.append(a)
+        scale = jnp.maximum(scale, jnp.abs(a))
+        if j == m - 1:
+            break
+        V = jnp.stack(basis)  # (j + 1, n)
+        w = w - vecmat(matvec(V, w), V)  # one Gram-Schmidt pass: enough for a few steps
+        b = jnp.linalg.norm(w)
+        alive = b > 1e3 * eps * scale  # invariant subspace found: stop growing T
+        b = jnp.where(alive, b, 0.0)
+        betas.append(b)
+        q = jnp.where(alive, w / jnp.where(alive, b, 1.0), 0.0)
+        basis.append(q)
+    alpha = jnp.stack(alphas)
+    beta = jnp.stack(betas) if betas else jnp.zeros(0, dtype)
+    iters = 24 if dtype == jnp.float64 else 20
+    return _sturm_top(alpha, beta, iters)
