@@ -44,7 +44,11 @@ whose derivative the camera dominates most (order 1, penalised velocity, for slo
 where the camera moves faster than the point but accelerates less).
 
 The reported covariance treats ``kappa |x_hat - c|`` as a two-standard-deviation bound of
-the along-ray error (the term added is ``kappa^2 / 4 (x_hat - c)(x_hat - c)^T``).
+the along-ray error: the standard deviation along each frame's ray is raised to at least
+``kappa |x_hat - c| / 2``. On data drawn from the prior (random cameras) the posterior
+is then left as it is and matches Monte-Carlo errors (mean squared error / trace 0.89
+for order 1, 1.01 for order 2); the noise density is chosen on half decades for that
+(see :func:`_psd_grid`).
 """
 
 from __future__ import annotations
@@ -78,7 +82,8 @@ class PointEstimate(eqx.Module):
     Attributes:
         points: (N, F, 3) positions at the frame times [m].
         cov: (N, F, 3, 3) covariance of each position [m^2]: the smoother's posterior
-            plus the along-ray term ``kappa^2 / 4 (x - c)(x - c)^T`` (see the module notes).
+            with the standard deviation along each ray raised to at least
+            ``kappa |x - c| / 2`` (see the module notes).
         posterior_cov: (N, F, 3, 3) the chosen smoother's posterior alone [m^2].
         order: (N,) order of the smoothness prior chosen per point.
         depth_uncertainty: (N,) ``kappa`` of the chosen order: the along-ray error
@@ -182,6 +187,25 @@ def _evidence(P, uv, times, w, sm, order):
     )
 
 
+def _with_ray_bound(cov, d, rel_sd):
+    """Raise the standard deviation along each ray ``d_i`` (F, 3) to at least
+    ``rel_sd |d_i|``: adds ``max(rel_sd^2 |d_i|^2 - u_i^T cov_i u_i, 0) u_i u_i^T``."""
+    n2 = jnp.sum(d * d, axis=-1)
+    tiny = jnp.finfo(d.dtype).tiny
+    u = d / jnp.sqrt(jnp.maximum(n2, tiny))[:, None]
+    along = jnp.einsum("fi,fij,fj->f", u, cov, u)
+    extra = jnp.maximum(rel_sd**2 * n2 - along, 0.0)
+    return cov + extra[:, None, None] * u[:, :, None] * u[:, None, :]
+
+
+def _psd_grid(order: int) -> np.ndarray:
+    """The smoother's default range of noise densities in half decades: on decades, the
+    parabolic refinement of the likelihood's minimum was off by 2x in q (order 1, data
+    drawn from the prior), which made the posterior 2x too wide; half decades: 8 %."""
+    g = default_psd_grid(order)
+    return 10.0 ** np.arange(np.log10(g[0]), np.log10(g[-1]) + 0.01, 0.5)
+
+
 def _centres(P):
     return jax.vmap(lambda p: -jnp.linalg.solve(p[:, :3], p[:, 3]))(P)
 
@@ -194,14 +218,14 @@ def _one_order(P, C, uv, times, w, order, opts):
         w,
         order=order,
         process_psd=None,
-        grid=jnp.asarray(default_psd_grid(order), P.dtype),
+        grid=jnp.asarray(_psd_grid(order), P.dtype),
         covariance=True,
         **opts,
     )
     x = sm.points
     kappa = depth_uncertainty(x, C, times, order)
     d = x - C
-    cov = sm.cov + 0.25 * kappa**2 * d[:, :, None] * d[:, None, :]
+    cov = _with_ray_bound(sm.cov, d, 0.5 * kappa)
     mse = jnp.mean(jnp.trace(cov, axis1=-2, axis2=-1))
     return sm, kappa, cov, jnp.sqrt(mse), _evidence(P, uv, times, w, sm, order)
 
