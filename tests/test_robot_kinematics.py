@@ -164,3 +164,19 @@ def test_kinematic_chain_checks_its_arguments():
         kinematic_chain(*args[:2], skew, *args[3:])
     with pytest.raises(ValueError, match="joint_types"):
         kinematic_chain(*args, joint_types=["revolute", "spherical"])
+
+
+def test_float32_forward_kinematics_within_rounding(rng):
+    """The same chain in float32: the flange within ~100 eps of the 2.5 m lever arm."""
+    chain = load_robot("kr16_2")
+    chain32 = jax.tree_util.tree_map(
+        lambda a: a.astype(jnp.float32) if hasattr(a, "astype") else a, chain
+    )
+    qs = _random_q(chain, rng, 20)
+    fk = jax.jit(jax.vmap(forward_kinematics, in_axes=(None, 0)))
+    T64 = np.asarray(fk(chain, qs))
+    T32 = fk(chain32, qs.astype(np.float32))
+    assert T32.dtype == jnp.float32
+    eps = np.finfo(np.float32).eps
+    np.testing.assert_allclose(np.asarray(T32)[:, :3, :3], T64[:, :3, :3], atol=100 * eps)
+    np.testing.assert_allclose(np.asarray(T32)[:, :3, 3], T64[:, :3, 3], atol=100 * eps * 2.5)
