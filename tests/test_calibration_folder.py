@@ -201,3 +201,16 @@ def test_robot_format_option_is_checked(tmp_path, capsys, form):
     code = main(["calibrate", str(folder), "--no-refine", "--robot-format", other])
     assert code == EXIT_USAGE
     assert "robot.csv:1: missing header column(s) X, Y, Z, A, B, C" in capsys.readouterr().err
+
+
+def test_options_are_checked():
+    from jaxtraj.pipeline.calibrate import CalibrationOptions
+
+    with pytest.raises(ValueError, match="method: expected one of"):
+        CalibrationOptions(method="magic")
+    with pytest.raises(ValueError, match="robot_sigma"):
+        CalibrationOptions(robot_sigma=(1e-4, -1.0))
+    with pytest.raises(ValueError, match="min_corners"):
+        CalibrationOptions(min_corners=3)
+    with pytest.raises(ValueError, match="max_position_spread"):
+        CalibrationOptions(max_position_spread=0.0)

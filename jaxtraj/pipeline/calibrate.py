@@ -82,6 +82,33 @@ class CalibrationOptions:
     min_corners: int = 6
     solver: str = "lm"
 
+    def __post_init__(self):
+        from ..io.robot_poses import FORMS
+        from ..vision.handeye import METHODS
+
+        choices = {
+            "robot_format": ("auto", *FORMS),
+            "length_unit": ("m", "mm"),
+            "angle_unit": ("rad", "deg"),
+            "method": ("auto", *METHODS),
+            "solver": ("lm", "gauss-newton", "dogleg"),
+        }
+        for name, allowed in choices.items():
+            if getattr(self, name) not in allowed:
+                raise ValueError(f"{name}: expected one of {allowed}, got {getattr(self, name)!r}")
+        if self.robot_sigma is not None and not (
+            len(self.robot_sigma) == 2 and all(np.isfinite(v) and v > 0 for v in self.robot_sigma)
+        ):
+            raise ValueError(
+                f"robot_sigma: expected (position [m], rotation [rad]) > 0, got {self.robot_sigma}"
+            )
+        for name in ("max_position_spread", "max_rotation_spread"):
+            v = getattr(self, name)
+            if v is not None and not (np.isfinite(v) and v > 0):
+                raise ValueError(f"{name}: expected a positive limit or None, got {v!r}")
+        if not isinstance(self.min_corners, int) or self.min_corners < 4:
+            raise ValueError(f"min_corners: expected an integer >= 4, got {self.min_corners!r}")
+
 
 @dataclass(frozen=True)
 class CalibrationReport:
