@@ -8,8 +8,9 @@ Layout::
       camera.json             intrinsics (+ hand-eye T_f_c, T_i_c); or OpenCV's camera.yaml;
                               may be absent before `jaxtraj calibrate` has run
       calibration/            images of the calibration target (*.png), optional
-      calibration/robot.csv   flange poses at each calibration image (same order, one row
-                              per image), optional: enables hand-eye calibration
+      calibration/robot.csv   flange poses at each calibration image (one row per image, in
+                              the images' natural order: 4.png before 12.png), optional:
+                              enables hand-eye calibration
       images.csv + images/    the workpiece images and their times     } at least one
       detections.csv          detected reference points                } of the two
       imu.csv                 IMU samples
