@@ -115,3 +115,54 @@ def test_report_runs_and_solvers_agree():
     # float32 agrees with float64 to a few float32 ulps relative
     rel = re.search(r"relative difference median ([0-9.e+-]+), max ([0-9.e+-]+)", report)
     assert rel is not None and float(rel.group(2)) < 100 * np.finfo(np.float32).eps
+
+
+def _trust_row(cell, camera, ep_err, flagged):
+    stats = dict(
+        trajectories=4,
+        err_mm=ep_err,
+        flagged=flagged,
+        ok_err_mm=ep_err,
+        ok_max_mm=2 * ep_err,
+        ok_nees=3.0,
+        over_5sd=0,
+        over_5sd_flagged=float("nan"),
+        has_cov=True,
+        ms_per_point=1.0,
+    )
+    other = dict(stats, err_mm=10.0)
+    row = dict(cell=cell, source="sim", camera=camera, noise_px=0.5, pixel_sigma=0.5)
+    row |= dict(scenes=1, seen=1.0, best_k=8, cv_k=[8])
+    import bench_estimators
+
+    return row | {key: dict(other) for key in bench_estimators.TRUST_ROWS} | {"ep": stats}
+
+
+def test_trust_scenes_follow_the_protocol():
+    """--trust (issue 20): orbits of radius 3 m at the stated speed, a follower at a fixed
+    offset, noise-free pixels that reproject; the summary marks missed targets."""
+    import bench_estimators as be
+
+    assert len(be.trust_cells({"cmu131_01": None, "cmu131_03": None}, None)) == 57
+    assert len(be.trust_cells({}, "sim/orbit1/*,*/random/*")) == 3
+    rng, noise_rng = np.random.default_rng(0), np.random.default_rng(1)
+    _, Xs, P, uv, w = be.trust_scene(rng, noise_rng, "sim", "orbit5", 0.0, 3, {})
+    assert Xs.shape == (3, 150, 3) and uv.shape == (3, 150, 2) and np.all(w == 1)
+    C = np.array([-np.linalg.solve(p[:, :3], p[:, 3]) for p in P])
+    mean = Xs.mean(axis=(0, 1))
+    np.testing.assert_allclose(np.linalg.norm(C - mean, axis=1), 3.0, rtol=1e-9)
+    flat = C[:, :2] - mean[:2]
+    step = np.degrees(np.arccos(np.sum(flat[1:] * flat[:-1], 1) / np.sum(flat[1:] ** 2, 1)))
+    np.testing.assert_allclose(step, 5.0, rtol=1e-6)
+    h = np.einsum("fij,nfj->nfi", P[:, :, :3], Xs) + P[None, :, :, 3]
+    np.testing.assert_allclose(uv, h[..., :2] / h[..., 2:], atol=1e-9)
+    _, Xs, P, _, _ = be.trust_scene(rng, noise_rng, "sim", "follow", 0.5, 3, {})
+    C = np.array([-np.linalg.solve(p[:, :3], p[:, 3]) for p in P])
+    offset = C - Xs.mean(axis=0)
+    np.testing.assert_allclose(offset, np.broadcast_to(offset[0], offset.shape), atol=1e-9)
+    rows = [_trust_row("sim/random/0.5px", "random", 20.0, 0.5)]
+    rows.append(_trust_row("sim/orbit1/clean", "orbit1", 11.0, 0.0))
+    text = be.trust_markdown(rows)
+    assert "| sim/orbit1/clean | 1.10 (" in text  # sorted: orbits first; within 1.25x
+    assert "| **2.00 (" in text and "**50 %** (missed)" in text
+    assert "ratio to best other: 1 of 2 cells" in text
