@@ -172,6 +172,12 @@ def test_bad_input(tmp_path, capsys):
     code, io = run()
     assert code == EXIT_USAGE and "robot.csv: robot poses: all rotations" in io.err
     assert "about one axis (+0.000, +0.000, +1.000)" in io.err
+    # two views paired with each other's poses (as a lexicographic sort of unpadded names
+    # would): rejected by the limits derived from the data, with the reason
+    swapped = s.T_b_f[[0, 2, 1, *range(3, 12)]]
+    _write_robot(folder / "robot.csv", swapped, "rotvec")
+    code, io = run()
+    assert code == EXIT_FAILED and "rejected: the target position implied" in io.out, io.out
     # a clear rejection: limits given tighter than the data allow
     _write_robot(folder / "robot.csv", s.T_b_f, "rotvec")
     code, io = run("--max-spread-mm", "0.01")
@@ -182,7 +188,9 @@ def test_bad_input(tmp_path, capsys):
                                            enumerate(names[:2])})  # fmt: skip
     (folder / "robot.csv").unlink()
     code, io = run()
-    assert code == EXIT_USAGE and "found in 2 image(s), need >= 3" in io.err
+    assert (
+        code == EXIT_USAGE and "corners.csv: images: the target was found in 2 image(s)" in io.err
+    )
     # a corners CSV without the image size; no target description
     (folder / "target.json").write_text(json.dumps(CHARUCO))
     code, io = run()

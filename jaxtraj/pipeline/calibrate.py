@@ -492,7 +492,13 @@ def calibrate_folder(
             length_unit=options.length_unit,
             angle_unit=options.angle_unit,
         )
-    return calibrate_views(corners, target, size, robot=robot, options=options, skipped=skipped)
+    try:
+        return calibrate_views(corners, target, size, robot=robot, options=options, skipped=skipped)
+    except ValueError as err:
+        if isinstance(err, RecordingError) or not str(err).startswith("images:"):
+            raise
+        source = corners_path if corners_file or corners_path.is_file() else folder
+        raise ValueError(f"{source}: {err}") from None
 
 
 def calibrate_recording(
