@@ -178,6 +178,7 @@ def test_bad_input(tmp_path, capsys):
     _write_robot(folder / "robot.csv", swapped, "rotvec")
     code, io = run()
     assert code == EXIT_FAILED and "rejected: the target position implied" in io.out, io.out
+    assert "rejected: the limits assume robot pose noise of 0.1 mm and 0.02 deg" in io.out
     # a clear rejection: limits given tighter than the data allow
     _write_robot(folder / "robot.csv", s.T_b_f, "rotvec")
     code, io = run("--max-spread-mm", "0.01")

@@ -308,6 +308,13 @@ def _hand_eye(result, target, T_b_f, options: CalibrationOptions, robot_source: 
             f"{np.degrees(limits[1]):.3f} deg"
         )
     derived = options.max_position_spread is None and options.max_rotation_spread is None
+    if reasons and derived:
+        reasons.append(
+            f"the limits assume robot pose noise of {options.robot_sigma[0] * 1e3:.3g} mm and "
+            f"{np.degrees(options.robot_sigma[1]):.3g} deg and {pixel_sigma:.3g} px corner noise "
+            "(from the intrinsic calibration); if the controller is noisier, say so with "
+            "--robot-sigma-mm/--robot-sigma-deg, or set --max-spread-mm/--max-spread-deg"
+        )
     hand_eye = {
         **_consistency_dict(c),
         "position_limit_mm": limits[0] * 1e3,
