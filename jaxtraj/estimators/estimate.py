@@ -59,6 +59,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float, Int
 
+from .._checks import is_concrete
 from ..solve import Status
 from ._common import as_float, check_loss, check_positive, linearise, normalise_cameras
 from .smoothness import (
@@ -73,6 +74,7 @@ from .smoothness import (
 __all__ = ["PointEstimate", "depth_uncertainty", "estimate_points"]
 
 ORDERS = (1, 2, 3)
+MIN_OBSERVED = 3  # frames with a detection per track (raised outside jit)
 START_SD = (1.0, 1.0, 10.0)  # start prior of the evidence: m, m/s, m/s^2 (module notes)
 
 
@@ -324,6 +326,14 @@ def estimate_points(
             f"P: expected at least {2 * max(orders) + 2} frames for orders {orders}, "
             f"got {np.shape(P)[0]}"
         )
+    if weights is not None and is_concrete(weights):
+        n_obs = np.sum(np.asarray(weights) > 0, axis=1)
+        few = np.flatnonzero(n_obs < MIN_OBSERVED)
+        if few.size:
+            raise ValueError(
+                f"weights: tracks {few[:8].tolist()} have fewer than {MIN_OBSERVED} observed "
+                f"frames (weight > 0); {n_obs[few[:8]].tolist()} observed frames"
+            )
     P, uv, times, weights = as_float(P, uv, times, weights)
     dtype = P.dtype
     w = jnp.ones(uv.shape[:2], dtype) if weights is None else weights
