@@ -9,6 +9,8 @@ from O(F k^2) normal equations, batched over points.
 Usage::
 
     python benchmarks/bench_solve.py [--quick] [--out benchmarks/results/solve.md]
+    python benchmarks/bench_solve.py --stress 50   # hang check: 50 batched solves
+    python benchmarks/bench_solve.py --structured-only   # vs vectorised NumPy, gain cost
 
 Float64 is enabled below (a benchmark script may do so; library code never does); the
 float32 runs cast their inputs.
@@ -147,6 +149,55 @@ def run_kernel(
 
     fn = jax.jit(jax.vmap(one, in_axes=(None, 0, None, 0)))
     return time_call(lambda: fn(P, uv, basis, w), repeats=repeats).median / uv.shape[0]
+
+
+def numpy_structured(P: np.ndarray, uv: np.ndarray, basis: np.ndarray) -> np.ndarray:
+    """Coefficients (N, k, 3) from the same structured normal equations in vectorised NumPy.
+
+    What a competent engineer writes in an afternoon: per-frame ``Q^T Q`` and ``Q^T q`` of
+    all points by einsum, the Kronecker sums over frames as one matrix product with the
+    (F, k^2) basis products, one batched ``numpy.linalg.solve`` (LAPACK), no refinement and
+    no degeneracy test.
+    """
+    N, F, _ = uv.shape
+    k = basis.shape[1]
+    rows = P[None, :, :2, :] - uv[..., None] * P[None, :, 2:3, :]  # (N, F, 2, 4)
+    Q, q = rows[..., :3], -rows[..., 3]
+    QtQ = np.einsum("nfri,nfrj->nfij", Q, Q).reshape(N, F, 9)
+    Qtq = np.einsum("nfri,nfr->nfi", Q, q)
+    phiphi = (basis[:, :, None] * basis[:, None, :]).reshape(F, k * k)
+    Nm = np.matmul(phiphi.T, QtQ).reshape(N, k, k, 3, 3).transpose(0, 1, 3, 2, 4)
+    b = np.matmul(basis.T, Qtq)  # (N, k, 3)
+    beta = np.linalg.solve(Nm.reshape(N, 3 * k, 3 * k), b.reshape(N, 3 * k, 1))
+    return beta.reshape(N, k, 3)
+
+
+def time_numpy_structured(scene: Scene, repeats: int = 5, dtype=np.float64) -> float:
+    """Warm seconds per point of :func:`numpy_structured` on all points of the scene."""
+    P, uv, basis = (np.asarray(x, dtype) for x in (scene.P, scene.uv, scene.basis))
+    timing = time_call(lambda: numpy_structured(P, uv, basis), repeats=repeats)
+    return timing.median / uv.shape[0]
+
+
+def stress(scene: Scene, repeats: int, log) -> None:
+    """Run ``repeats`` batched solves of each kind back to back (a hang check: with jaxlib
+    0.10 vmapped LAPACK calls were seen to deadlock on 2 cores; the watchdog aborts with
+    stack traces if a call never returns)."""
+    P, uv, basis = _inputs(scene, jnp.float64)
+    w = jnp.ones(uv.shape[:2], jnp.float64)
+    vm = jax.jit(jax.vmap(reconstruct, in_axes=(None, 0, None, 0)))
+    for name, fn in (
+        ("reconstruct_points", lambda: reconstruct_points(P, uv, basis, w)),
+        ("jit(vmap(reconstruct))", lambda: vm(P, uv, basis, w)),
+    ):
+        started = time.perf_counter()
+        for i in range(repeats):
+            out = jax.block_until_ready(fn())
+            if i == 0:
+                log(f"stress {name}: first call {time.perf_counter() - started:.1f} s")
+        total = time.perf_counter() - started
+        ok = int(np.sum(np.asarray(out.status) == 0))
+        log(f"stress {name}: {repeats} calls in {total:.1f} s, last status OK {ok}/{uv.shape[0]}")
 
 
 def dense_in_child(F: int, k: int, N: int, blas_threads: int, cfg: Config) -> float | None:
@@ -311,6 +362,73 @@ def section_main(cfg: Config, log) -> list[str]:
     return lines
 
 
+def structured_rows(scene: Scene, cfg: Config, log) -> list[str]:
+    """``reconstruct_points`` (with status) against the vectorised-NumPy structured baseline,
+    float64 and float32, interleaved in this process (median of the trials' ratios)."""
+    N = scene.uv.shape[0]
+    rows, ratios = [], {}
+    for dtype, npdtype in ((jnp.float64, np.float64), (jnp.float32, np.float32)):
+        name = np.dtype(npdtype).name
+        pairs = []
+        for _ in range(cfg.trials):
+            jr = run_jaxtraj(scene, dtype, repeats=cfg.repeats)
+            nps = time_numpy_structured(scene, repeats=cfg.repeats, dtype=npdtype)
+            pairs.append((jr.per_point_s, nps))
+        jax_pp = float(np.median([a for a, _ in pairs]))
+        np_pp = float(np.median([b for _, b in pairs]))
+        ratio = float(np.median([b / a for a, b in pairs]))
+        ratios[name] = ratio
+        ok = int(np.sum(np.asarray(jr.result.status) == 0))
+        ref = numpy_structured(*(np.asarray(x, npdtype) for x in (scene.P, scene.uv, scene.basis)))
+        rel = relative_difference(np.asarray(jr.result.coeffs, np.float64), ref.astype(np.float64))
+        rows.append(
+            [name, fmt_us(jax_pp), fmt_us(np_pp), fmt_times(ratio), f"{ok}/{N}", f"{rel:.1e}"]
+        )
+        log(f"structured NumPy {name}: jaxtraj {fmt_us(jax_pp)} us/pt, NumPy {fmt_us(np_pp)}")
+    header = [
+        "dtype",
+        "reconstruct_points with status [us/point]",
+        "vectorised NumPy structured [us/point]",
+        "speed-up",
+        "status OK",
+        "max rel. diff of coeffs",
+    ]
+    return [
+        "Against the vectorised-NumPy structured baseline (`numpy_structured`: the same "
+        "normal equations by einsum and one matrix product, one batched "
+        "`numpy.linalg.solve`; no refinement, no degeneracy test), all points, "
+        "interleaved trials in this process, medians:",
+        "",
+        markdown_table(header, rows),
+        "",
+    ]
+
+
+def section_structured(cfg: Config, log) -> list[str]:
+    """The issue-23 figures alone: ``reconstruct_points`` with status against the
+    vectorised-NumPy baseline (float64, float32) and the cost of the degeneracy test."""
+    F, k, N = cfg.main
+    scene = make_scene(F, k, N, seed=0)
+    lines = [f"## Structured baseline and gain cost: F = {F}, k = {k}, N = {N}", ""]
+    lines += structured_rows(scene, cfg, log)
+    P, uv, basis = _inputs(scene, jnp.float64)
+    with_gain, without = [], []
+    for _ in range(cfg.trials):
+        for diag, out in ((True, with_gain), (False, without)):
+            fn = lambda d=diag: reconstruct_points(P, uv, basis, diagnostics=d)  # noqa: E731
+            out.append(time_call(fn, repeats=cfg.repeats).median / N)
+    extra = float(np.median([a / b - 1.0 for a, b in zip(with_gain, without, strict=True)]))
+    log(f"gain: {fmt_us(np.median(with_gain))} vs {fmt_us(np.median(without))} us/pt")
+    lines += [
+        f"`reconstruct_points` float64 with the conditioning-gain bound "
+        f"{fmt_us(float(np.median(with_gain)))} us per point, with `diagnostics=False` "
+        f"{fmt_us(float(np.median(without)))} us: the gain costs {100 * extra:.0f} % of the "
+        "solve (median of interleaved trials).",
+        "",
+    ]
+    return lines
+
+
 def section_scaling(cfg: Config, log) -> list[str]:
     F0, k0, N0 = cfg.main
     lines = []
@@ -429,6 +547,7 @@ def run_all(cfg: Config, log=lambda msg: None) -> str:
     ]
     body = []
     body += section_main(cfg, log)
+    body += section_structured(cfg, log)
     body += section_scaling(cfg, log)
     body += section_precision(cfg, log)
     body += section_memory(cfg, log)
@@ -445,6 +564,18 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--quick", action="store_true", help="small sizes: a smoke run")
     parser.add_argument("--out", type=Path, default=None, help="write the markdown report here")
     parser.add_argument("--dense-child", default=None, help=argparse.SUPPRESS)
+    parser.add_argument(
+        "--structured-only",
+        action="store_true",
+        help="only the structured-NumPy comparison and the gain cost of the main case",
+    )
+    parser.add_argument(
+        "--stress",
+        type=int,
+        default=0,
+        metavar="REPEATS",
+        help="only run REPEATS batched solves of the main case back to back (a hang check)",
+    )
     add_watchdog_option(parser)
     args = parser.parse_args(argv)
     if args.dense_child is not None:
@@ -452,8 +583,28 @@ def main(argv: list[str] | None = None) -> int:
         return 0
     start_watchdog(args.watchdog)
     log = stderr_logger("bench_solve")
+    if args.stress:
+        import jaxlib
 
-    report = run_all(QUICK if args.quick else FULL, log)
+        F, k, N = (QUICK if args.quick else FULL).main
+        log(f"jax {jax.__version__}, jaxlib {jaxlib.__version__}; F={F} k={k} N={N}")
+        stress(make_scene(F, k, N, seed=0), args.stress, log)
+        faulthandler.cancel_dump_traceback_later()
+        return 0
+
+    cfg = QUICK if args.quick else FULL
+    if args.structured_only:
+        import jaxlib
+
+        report = "\n".join(
+            [
+                f"jax {jax.__version__}, jaxlib {jaxlib.__version__}; {machine_info()}",
+                "",
+                *section_structured(cfg, log),
+            ]
+        )
+    else:
+        report = run_all(cfg, log)
     print(report)
     if args.out is not None:
         args.out.parent.mkdir(parents=True, exist_ok=True)

@@ -115,6 +115,10 @@ def test_report_runs_and_solvers_agree():
     # float32 agrees with float64 to a few float32 ulps relative
     rel = re.search(r"relative difference median ([0-9.e+-]+), max ([0-9.e+-]+)", report)
     assert rel is not None and float(rel.group(2)) < 100 * np.finfo(np.float32).eps
+    # the vectorised-NumPy structured baseline solves the same equations
+    row = re.search(r"^\| float64 \| .*\| (\d+)/(\d+) \| ([0-9.e+-]+) \|$", report, re.M)
+    assert row is not None and float(row.group(3)) < 1e-9
+    assert "the gain costs" in report
 
 
 def _trust_row(cell, camera, ep_err, flagged):
