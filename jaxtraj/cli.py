@@ -71,11 +71,12 @@ def _add_reconstruct_options(p: argparse.ArgumentParser) -> None:
     )
     p.add_argument(
         "--track-method",
-        choices=("smoother", "dct", "none"),
-        default="smoother",
+        choices=("estimate", "smoother", "dct", "none"),
+        default="estimate",
         help="per-point trajectories without the object model (the paper's method): "
-        "'smoother' (smoothness prior, no k; default), 'dct' (plain DCT with --k vectors) "
-        "or 'none'",
+        "'estimate' (jaxtraj.estimate_points: motion model chosen per point, flagged where "
+        "the depth is not determined; default), 'smoother' (smoothness prior of order 2), "
+        "'dct' (plain DCT with --k vectors) or 'none'",
     )
     p.add_argument("--k", type=_positive_int, default=20, help="DCT vectors (default 20)")
 

@@ -229,7 +229,8 @@ def test_chosen_q_gives_the_fixed_q_result_even_with_a_slow_camera():
             covariance=False,
             process_psd=float(chosen.process_psd[i]),
         )
-        assert int(chosen.status[i]) == int(fixed.status) == jt.Status.OK
+        # a slow camera: the depth along the rays is the prior's, not the data's
+        assert int(chosen.status[i]) == int(fixed.status) == jt.Status.DEGENERATE
         np.testing.assert_allclose(chosen.points[i], fixed.points, atol=1e-6)
         assert float(chosen.rms_px[i]) == pytest.approx(float(fixed.rms_px), rel=1e-3)
 

@@ -62,6 +62,7 @@ from jaxtyping import Array, ArrayLike, Float, Int
 from .._checks import is_concrete
 from ..solve import Status
 from ._common import as_float, check_loss, check_positive, linearise, normalise_cameras
+from ._depth import camera_centres, depth_uncertainty
 from .smoothness import (
     _neg2_log_evidence,
     _q_unit,
@@ -115,41 +116,6 @@ class PointEstimate(eqx.Module):
     def std(self) -> Float[Array, "N F"]:
         """(N, F) RMS standard deviation of each position, ``sqrt(trace(cov))`` [m]."""
         return jnp.sqrt(jnp.trace(self.cov, axis1=-2, axis2=-1))
-
-
-def _roughness(y: Float[Array, "F 3"], t: Float[Array, " F"], order: int) -> Float[Array, ""]:
-    """``sum_i h_i |D^m y_i|^2``: squared ``order``-th divided differences of ``y`` (time
-    in units of the mean frame step), each weighted by its span ``h_i / order`` so that
-    an integrated white noise gives the same expected value per term at any spacing."""
-    d = y
-    for j in range(1, order + 1):
-        span = (t[j:] - t[:-j])[:, None]
-        d = j * jnp.diff(d, axis=0) / span
-    span = t[order:] - t[:-order]
-    return jnp.sum(span / order * jnp.sum(d * d, axis=-1))
-
-
-def depth_uncertainty(
-    points: Float[ArrayLike, "F 3"],
-    centres: Float[ArrayLike, "F 3"],
-    times: Float[ArrayLike, " F"],
-    order: int = 2,
-) -> Float[Array, ""]:
-    """Relative depth uncertainty ``kappa`` of one trajectory estimate (module notes).
-
-    ``sqrt(R(x) / R(x - c))`` with ``R`` the ``order``-th divided-difference roughness:
-    how much the estimate can slide along its viewing rays, towards or away from the
-    cameras ``c``, relative to its distance from them, before the prior of that order
-    notices. Works for any estimator's output (one trajectory; vmap for more).
-    """
-    x = jnp.asarray(points)
-    c = jnp.asarray(centres, x.dtype)
-    t = jnp.asarray(times, x.dtype)
-    t = (t - t[0]) / ((t[-1] - t[0]) / (t.shape[0] - 1))
-    num = _roughness(x, t, order)
-    den = _roughness(x - c, t, order)
-    tiny = jnp.finfo(x.dtype).tiny
-    return jnp.sqrt(num / jnp.maximum(den, tiny))
 
 
 def _evidence(P, uv, times, w, sm, order):
@@ -208,10 +174,6 @@ def _psd_grid(order: int) -> np.ndarray:
     return 10.0 ** np.arange(np.log10(g[0]), np.log10(g[-1]) + 0.01, 0.5)
 
 
-def _centres(P):
-    return jax.vmap(lambda p: -jnp.linalg.solve(p[:, :3], p[:, 3]))(P)
-
-
 def _one_order(P, C, uv, times, w, order, opts):
     sm = _smooth(
         P,
@@ -222,6 +184,7 @@ def _one_order(P, C, uv, times, w, order, opts):
         process_psd=None,
         grid=jnp.asarray(_psd_grid(order), P.dtype),
         covariance=True,
+        max_depth_uncertainty=None,  # judged here, across the orders
         **opts,
     )
     x = sm.points
@@ -268,7 +231,7 @@ def _estimate_one(P, C, uv, times, w, orders, tau, opts):
 
 @eqx.filter_jit
 def _estimate(P, uv, times, weights, orders, tau, opts):
-    C = _centres(P)
+    C = camera_centres(P)
     return jax.vmap(lambda u, w: _estimate_one(P, C, u, times, w, orders, tau, opts))(uv, weights)
 
 

@@ -57,6 +57,7 @@ from ._common import (
     rho_weight,
     validate_track,
 )
+from ._depth import camera_centres, depth_uncertainty
 
 __all__ = [
     "Smoothed",
@@ -262,6 +263,7 @@ def smooth_trajectory(
     covariance: bool = True,
     start_mean: Float[ArrayLike, "order 3"] | None = None,
     start_cov: Float[ArrayLike, "s s"] | None = None,
+    max_depth_uncertainty: float | None = 0.08,
 ) -> Smoothed:
     """Estimate one point's trajectory with a smoothness prior (no basis, no k).
 
@@ -294,6 +296,13 @@ def smooth_trajectory(
             3 order) in the order of ``Smoothed.states`` flattened (position first), e.g.
             a hand-over pose known from the robot or the end of an earlier track. Without
             it the start is free (no initial guess needed). Both or neither.
+        max_depth_uncertainty: without a start prior, a track whose relative depth
+            uncertainty ``kappa`` (:func:`jaxtraj.depth_uncertainty`: how far the estimate
+            can slide along its viewing rays before this prior notices, relative to the
+            distance to the camera) exceeds this is ``Status.DEGENERATE``: its depth is
+            set by the prior, not by the data (slow cameras, a camera that follows the
+            point), and the posterior covariance understates its error along the rays.
+            ``None`` turns the check off.
 
     Returns:
         A :class:`Smoothed` with states, posterior covariances and a status.
@@ -312,6 +321,7 @@ def smooth_trajectory(
     )
     grid = default_psd_grid(order) if psd_grid is None else psd_grid
     _validate_start(start_mean, start_cov, order)
+    check_positive("max_depth_uncertainty", max_depth_uncertainty, "a relative depth error")
     P, uv, times, weights = as_float(P, uv, times, weights)
     dtype = P.dtype
     return _smooth_jit(
@@ -331,6 +341,7 @@ def smooth_trajectory(
         covariance=covariance,
         start_mean=None if start_mean is None else jnp.asarray(start_mean, dtype),
         start_cov=None if start_cov is None else jnp.asarray(start_cov, dtype),
+        max_depth_uncertainty=max_depth_uncertainty,
     )
 
 
@@ -371,6 +382,7 @@ def _smooth(
     start_mean=None,
     start_cov=None,
     curve_only=False,
+    max_depth_uncertainty=None,
 ):
     """The traced body of :func:`smooth_trajectory` (inputs already validated)."""
     dtype = P.dtype
@@ -491,13 +503,21 @@ def _smooth(
     rms = jnp.sqrt(
         jnp.sum(jnp.where(observed, jnp.sum(e * e, axis=1), 0.0)) / jnp.maximum(n_obs, 1)
     )
+    undetermined = False
+    if max_depth_uncertainty is not None and start_mean is None:
+        kappa = depth_uncertainty(states[:, 0], camera_centres(P), times, order)
+        undetermined = kappa > max_depth_uncertainty
     status = jnp.where(
         ~finite_in | ~jnp.all(jnp.isfinite(states)),
         Status.NONFINITE,
         jnp.where(
             2 * n_obs < 3 * order,
             Status.UNDERDETERMINED,
-            jnp.where(pivot < 1e3 * jnp.finfo(dtype).eps, Status.DEGENERATE, Status.OK),
+            jnp.where(
+                (pivot < 1e3 * jnp.finfo(dtype).eps) | undetermined,
+                Status.DEGENERATE,
+                Status.OK,
+            ),
         ),
     ).astype(jnp.int32)
     return Smoothed(

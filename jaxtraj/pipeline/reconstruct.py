@@ -37,7 +37,7 @@ from ..io.records import (
 __all__ = ["POSE_METHODS", "TRACK_METHODS", "Measurement", "reconstruct_recording"]
 
 POSE_METHODS = ("pnp", "joint")
-TRACK_METHODS = ("smoother", "dct", "none")
+TRACK_METHODS = ("estimate", "smoother", "dct", "none")
 #: A frame whose model-based reprojection RMS exceeds this [px] is not trusted.
 MAX_FRAME_RMS_PX = 3.0
 #: A per-point trajectory whose largest posterior standard deviation exceeds this [m] is
@@ -82,7 +82,7 @@ class Measurement:
     track_std: np.ndarray
     skipped: list = field(default_factory=list)
     pose_method: str = "pnp"
-    track_method: str = "smoother"
+    track_method: str = "estimate"
 
 
 def _pnp(model: np.ndarray, uv: np.ndarray, K: np.ndarray):
@@ -115,7 +115,7 @@ def reconstruct_recording(
     model: ObjectModel,
     *,
     pose_method: str = "pnp",
-    track_method: str = "smoother",
+    track_method: str = "estimate",
     k: int = 20,
     pixel_sigma: float = 0.1,
 ) -> Measurement:
@@ -127,7 +127,9 @@ def reconstruct_recording(
         cameras: camera poses ``T_w_c`` at the same image times (from ``fuse``).
         model: reference points in the object frame and the assembly point.
         pose_method: ``"pnp"`` (per image) or ``"joint"`` (one smooth motion, DCT ``k``).
-        track_method: per-point trajectories with ``"smoother"``, ``"dct"`` (``k``
+        track_method: per-point trajectories with ``"estimate"`` (the default:
+            :func:`jaxtraj.estimate_points`, model chosen per point, DEGENERATE where the
+            depth is not determined), ``"smoother"`` (order 2), ``"dct"`` (``k``
             vectors) or ``"none"``.
         k: DCT vectors for ``"joint"`` and ``"dct"``.
         pixel_sigma: detection noise [px] assumed by the smoother.
@@ -243,10 +245,16 @@ def _tracks(method, P, uv, times, weights, k, pixel_sigma):
         )(jnp.asarray(uv_t), res.coeffs, jnp.asarray(w_t))
         pts, rms = res.points, res.rms_px
         ok = np.asarray(res.status == Status.OK)
-    else:
+    elif method == "smoother":
         from ..estimators import smooth_points
 
         res = smooth_points(P, uv_t, times, w_t, pixel_sigma=pixel_sigma, covariance=True)
+        pts, cov, rms = res.points, res.cov, res.rms_px
+        ok = np.asarray(res.status == Status.OK)
+    else:  # estimate: model chosen per point, along-ray uncertainty, DEGENERATE flag
+        from ..estimators.estimate import estimate_points
+
+        res = estimate_points(P, uv_t, times, w_t, pixel_sigma=pixel_sigma)
         pts, cov, rms = res.points, res.cov, res.rms_px
         ok = np.asarray(res.status == Status.OK)
     std = np.sqrt(np.max(np.trace(np.asarray(cov), axis1=-2, axis2=-1), axis=-1))

@@ -185,7 +185,7 @@ def step_reconstruct(
     out: Path | None = None,
     *,
     pose_method: str = "pnp",
-    track_method: str = "smoother",
+    track_method: str = "estimate",
     k: int = 20,
     plots: bool = True,
     progress: Progress | None = None,
