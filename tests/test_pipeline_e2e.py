@@ -61,7 +61,8 @@ def test_assembly_point_and_orientation_meet_the_targets(run):
     report = json.loads((rec / "results" / "report.json").read_text())
     stds = [t["max_posterior_std_mm"] for t in report["tracks"].values()]
     assert all(np.isfinite(stds))
-    assert [t["ok"] for t in report["tracks"].values()] == [sd <= 10.0 for sd in stds]
+    # OK needs both: a largest standard deviation within 10 mm and a determined depth
+    assert all(sd <= 10.0 for t, sd in zip(report["tracks"].values(), stds) if t["ok"])
     if ev["per_point_trajectories"]["mean_mm"] > 10.0:
         assert not any(t["ok"] for t in report["tracks"].values())
 
