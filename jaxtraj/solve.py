@@ -471,17 +471,21 @@ MAP_BATCH = 8
 
 @functools.partial(jax.jit, static_argnames=("refine", "diagnostics", "map_batch"))
 def _reconstruct_points(
-    P, uv, basis, weights, max_gain, penalty, refine, diagnostics, map_batch=MAP_BATCH
+    P, uv, basis, weights, max_gain, refine, diagnostics, penalty, map_batch=MAP_BATCH
 ):
-    N, b = jax.vmap(lambda u, w: _assemble(P, u, basis, w, penalty))(uv, weights)
+    """The batched kernel; ``penalty`` is None, shared (k,) or one per point (N, k)."""
+    n = uv.shape[0]
+    if penalty is not None and penalty.ndim == 1:
+        penalty = jnp.broadcast_to(penalty, (n, penalty.shape[0]))
+    N, b = jax.vmap(lambda u, w, p: _assemble(P, u, basis, w, p))(uv, weights, penalty)
 
     def finish(args):
-        u, w, N, b = args
-        return _finish(P, u, basis, w, N, b, max_gain, penalty, refine, diagnostics)
+        u, w, N, b, p = args
+        return _finish(P, u, basis, w, N, b, max_gain, p, refine, diagnostics)
 
     if map_batch == 0:
-        return jax.vmap(finish)((uv, weights, N, b))
-    return jax.lax.map(finish, (uv, weights, N, b), batch_size=map_batch)
+        return jax.vmap(finish)((uv, weights, N, b, penalty))
+    return jax.lax.map(finish, (uv, weights, N, b, penalty), batch_size=map_batch)
 
 
 def reconstruct_points(
@@ -511,4 +515,4 @@ def reconstruct_points(
     w = jnp.ones(uv_.shape[:2], P_.dtype) if weights is None else jnp.asarray(weights, P_.dtype)
     pen = None if penalty is None else jnp.asarray(penalty, P_.dtype)
     gain = jnp.asarray(max_gain, P_.dtype)
-    return _reconstruct_points(P_, uv_, basis_, w, gain, pen, refine, diagnostics)
+    return _reconstruct_points(P_, uv_, basis_, w, gain, refine, diagnostics, pen)

@@ -116,3 +116,33 @@ def test_batched_points_with_penalty_equal_loop():
     assert np.all(np.asarray(many.status) == jt.Status.OK)
     with pytest.raises(ValueError, match="k=25 is too large"):
         jt.reconstruct_points(s.P, uv, Phi)
+
+
+def test_batched_driver_equals_per_point_choice_and_solve():
+    """reconstruct_regularised_points: each point's weight is select_penalty_cv's choice
+    for it (or one shared weight), and the points equal the single-point solves."""
+    from jaxtraj.estimators import reconstruct_regularised_points
+
+    s = make_scene(jax.random.PRNGKey(6), n_frames=30, noise_px=0.3)
+    rng = np.random.default_rng(6)
+    uv = np.stack([np.asarray(s.uv) + rng.normal(size=(30, 2)) * sd for sd in (0.0, 3.0)])
+    grid = np.logspace(-2, 6, 3)
+    res, basis, choice = reconstruct_regularised_points(s.P, uv, s.times, k=6, grid=grid, folds=2)
+    assert basis.k == 6 and res.points.shape == (2, 30, 3)
+    Phi, rough = basis(s.times), roughness_penalty(basis)
+    for n in range(2):
+        one = select_penalty_cv(s.P, uv[n], basis, s.times, grid=grid, folds=2)
+        assert float(choice.lam[n]) == float(one.lam)
+        np.testing.assert_allclose(choice.criterion[n], one.criterion, rtol=1e-9)
+        ref = jt.reconstruct(s.P, uv[n], Phi, penalty=one.lam * rough)
+        np.testing.assert_allclose(res.points[n], ref.points, atol=1e-10)
+        assert float(res.gain[n]) == pytest.approx(float(ref.gain), rel=1e-9)
+    assert float(choice.lam[1]) > float(choice.lam[0])  # noisier track, stiffer penalty
+    res_shared, _, sc = reconstruct_regularised_points(
+        s.P, uv, s.times, k=6, grid=grid, folds=2, shared=True
+    )
+    assert float(sc.lam[0]) == float(sc.lam[1])
+    best = grid[int(np.argmin(np.mean(np.asarray(choice.criterion), axis=0)))]
+    assert float(sc.lam[0]) == pytest.approx(best)
+    ref = jt.reconstruct(s.P, uv[1], Phi, penalty=sc.lam[1] * rough)
+    np.testing.assert_allclose(res_shared.points[1], ref.points, atol=1e-10)

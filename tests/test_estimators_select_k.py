@@ -21,6 +21,8 @@ DCT = jax.jit(lambda P, uv, b: jt.reconstruct_points(P, uv[None], b).points[0], 
 # the solver's conditioning gain, compiled (run eagerly, every k costs ~70 small compilations)
 SOLVER_GAIN = jax.jit(lambda P, uv, b: jt.reconstruct(P, uv, b).gain)
 PREFIX = jax.jit(_prefix_solve)
+SMALL_KS = (3, 5)  # the batched-driver test: small candidates keep its compilations short
+CV_W = jax.jit(lambda P, uv, t, w: select_k_cv(P, uv, t, SMALL_KS, w, folds=2))
 
 
 def test_prefix_solve_equals_k_column_fit(rng):
@@ -111,3 +113,20 @@ def test_bad_inputs(rng):
         select_k_cv(s["P"], s["uv"], s["times"], healthy_gain=0.5)
     with pytest.raises(ValueError, match="times"):
         select_k_cv(s["P"], s["uv"], s["times"][:-1])
+
+
+def test_points_driver_equals_per_point_selection(rng):
+    from jaxtraj.estimators import select_k_points
+
+    s = robot_scene(rng, F=F, mode="random", noise=0.3)
+    uvs = np.stack([s["uv"], s["uv"] + rng.normal(size=(F, 2)) * 2.0])
+    w = np.ones((2, F))
+    w[1, ::7] = 0.0  # missing detections on the second point
+    many = select_k_points(s["P"], uvs, s["times"], SMALL_KS, w, folds=2)
+    for n in range(2):
+        one = CV_W(s["P"], uvs[n], s["times"], w[n])
+        np.testing.assert_allclose(np.asarray(many.score[n]), np.asarray(one.score), rtol=1e-9)
+        np.testing.assert_allclose(np.asarray(many.gain[n]), np.asarray(one.gain), rtol=1e-9)
+        assert int(many.k[n]) == int(one.k)
+    with pytest.raises(ValueError, match=r"weights: expected shape \(2, 60\)"):
+        select_k_points(s["P"], uvs, s["times"], SMALL_KS, w[:, 1:])

@@ -28,11 +28,13 @@ from .refine import refine_dct as refine_dct
 from .refine import refine_points as refine_points
 from .regularised import PenaltyChoice as PenaltyChoice
 from .regularised import reconstruct_regularised as reconstruct_regularised
+from .regularised import reconstruct_regularised_points as reconstruct_regularised_points
 from .regularised import roughness_penalty as roughness_penalty
 from .regularised import select_penalty_cv as select_penalty_cv
 from .select_k import KSelection as KSelection
 from .select_k import select_k_cv as select_k_cv
 from .select_k import select_k_gain as select_k_gain
+from .select_k import select_k_points as select_k_points
 from .smoothness import Smoothed as Smoothed
 from .smoothness import default_psd_grid as default_psd_grid
 from .smoothness import predict as predict
