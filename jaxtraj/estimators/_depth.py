@@ -48,3 +48,22 @@ def depth_uncertainty(
     den = _roughness(x - c, t, order)
     tiny = jnp.finfo(x.dtype).tiny
     return jnp.sqrt(num / jnp.maximum(den, tiny))
+
+
+def flag_undetermined_depth(res, P, times, order: int, max_depth_uncertainty: float = 0.08):
+    """``res`` (a :class:`jaxtraj.Reconstruction`, one point or a batch) with its status set
+    to ``DEGENERATE`` where ``kappa`` of the roughness ``order`` exceeds
+    ``max_depth_uncertainty``: the roughness penalty, not the data, set the depth."""
+    import equinox as eqx
+
+    from ..solve import Status
+
+    P = jnp.asarray(P, res.points.dtype)
+    C = camera_centres(P)
+    t = jnp.asarray(times, res.points.dtype)
+    kappa_of = lambda x: depth_uncertainty(x, C, t, order)  # noqa: E731
+    kappa = kappa_of(res.points) if res.points.ndim == 2 else jax.vmap(kappa_of)(res.points)
+    status = jnp.where(
+        (res.status == Status.OK) & (kappa > max_depth_uncertainty), Status.DEGENERATE, res.status
+    ).astype(res.status.dtype)
+    return eqx.tree_at(lambda r: r.status, res, status)

@@ -28,6 +28,7 @@ from jaxtyping import Array, ArrayLike, Float
 from .._checks import check_finite, check_shape, check_tracks
 from ..basis import DCTBasis
 from ..solve import Reconstruction, _reconstruct_points, _reprojection_rms, reconstruct
+from ._depth import flag_undetermined_depth
 from .select_k import check_rule
 
 __all__ = [
@@ -158,7 +159,7 @@ def reconstruct_regularised(
         lam = choice.lam
     pen = lam * roughness_penalty(basis, order)
     res = reconstruct(P, uv, basis(jnp.asarray(times)), weights, penalty=pen)
-    return res, basis, choice
+    return flag_undetermined_depth(res, P, times, order), basis, choice
 
 
 @functools.partial(jax.jit, static_argnames=("healthy_gain", "shared"))
@@ -225,10 +226,10 @@ def reconstruct_regularised_points(
     if lam is not None:
         pen = jnp.asarray(lam, dtype) * rough
         res = _reconstruct_points(P, uv, Phi, w, jnp.asarray(20.0, dtype), 1, True, pen)
-        return res, basis, None
+        return flag_undetermined_depth(res, P, times, order), basis, None
     grid = jnp.logspace(-4, 10, 15, dtype=dtype) if grid is None else jnp.asarray(grid, dtype)
     check_shape("grid", grid, (None,), "(G,) penalty weights")
     held = jnp.asarray(_fold_masks(F, folds))
     healthy = float(healthy_gain) if rule == "gain_weighted" else None
     res, choice = _regularised_points(P, uv, Phi, w, rough, grid, held, healthy, bool(shared))
-    return res, basis, choice
+    return flag_undetermined_depth(res, P, times, order), basis, choice
