@@ -984,7 +984,9 @@ def trust_markdown(results) -> str:
             ),
             mark(
                 None if ep["over_5sd"] == 0 else ep["over_5sd_flagged"] >= TARGET_CAUGHT,
-                f"{_pct(ep['over_5sd_flagged'])} of {ep['over_5sd']}",
+                f"{_pct(ep['over_5sd_flagged'])} of {ep['over_5sd']}"
+                if ep["over_5sd"]
+                else "none over 5 sd",
                 hdr[4],
             ),
             mark(ep["flagged"] <= TARGET_FLAGGED if fast else None, _pct(ep["flagged"]), hdr[5]),
