@@ -62,7 +62,7 @@ def test_assembly_point_and_orientation_meet_the_targets(run):
     stds = [t["max_posterior_std_mm"] for t in report["tracks"].values()]
     assert all(np.isfinite(stds))
     # OK needs both: a largest standard deviation within 10 mm and a determined depth
-    assert all(sd <= 10.0 for t, sd in zip(report["tracks"].values(), stds) if t["ok"])
+    assert all(sd <= 10.0 for t, sd in zip(report["tracks"].values(), stds, strict=True) if t["ok"])
     if ev["per_point_trajectories"]["mean_mm"] > 10.0:
         assert not any(t["ok"] for t in report["tracks"].values())
 
