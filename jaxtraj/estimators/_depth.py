@@ -1,13 +1,17 @@
 """Depth determinability of a trajectory estimate (see :mod:`.estimate` for the method).
 
-Shared by :func:`jaxtraj.estimate_points` and the smoother's status.
+Shared by :func:`jaxtraj.estimate_points` and the statuses of the smoother and the
+regularised DCT.
 """
 
 from __future__ import annotations
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Float
+
+from ..solve import Status
 
 
 def camera_centres(P: Float[Array, "F 3 4"]) -> Float[Array, "F 3"]:
@@ -33,7 +37,8 @@ def depth_uncertainty(
     times: Float[ArrayLike, " F"],
     order: int = 2,
 ) -> Float[Array, ""]:
-    """Relative depth uncertainty ``kappa`` of one trajectory estimate (module notes).
+    """Relative depth uncertainty ``kappa`` of one trajectory estimate (the notes of
+    :mod:`jaxtraj.estimators.estimate` derive it).
 
     ``sqrt(R(x) / R(x - c))`` with ``R`` the ``order``-th divided-difference roughness:
     how much the estimate can slide along its viewing rays, towards or away from the
@@ -54,10 +59,6 @@ def flag_undetermined_depth(res, P, times, order: int, max_depth_uncertainty: fl
     """``res`` (a :class:`jaxtraj.Reconstruction`, one point or a batch) with its status set
     to ``DEGENERATE`` where ``kappa`` of the roughness ``order`` exceeds
     ``max_depth_uncertainty``: the roughness penalty, not the data, set the depth."""
-    import equinox as eqx
-
-    from ..solve import Status
-
     P = jnp.asarray(P, res.points.dtype)
     C = camera_centres(P)
     t = jnp.asarray(times, res.points.dtype)
