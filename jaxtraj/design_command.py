@@ -200,7 +200,7 @@ def _joint_table(t, q_deg, names) -> str:
 def write_design(out: str | Path, spec: CellSpec, result: dict, plots: bool = True) -> Path:
     """Write the design's files into ``out`` (see the module docstring); returns ``out``."""
     from .design.bspline import bspline_basis, clamped_knots
-    from .io.formats import write_tum
+    from .io.csv_formats import write_tum
     from .io.records import PoseStream
     from .io.tables import atomic_folder, atomic_write_text
 

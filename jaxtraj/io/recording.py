@@ -24,7 +24,7 @@ Required: ``object.json``, ``imu.csv``, ``robot.csv`` and ``images.csv`` or
 ``detections.csv``. All times are seconds on one clock. ``imu.csv`` may also be in
 EuRoC's nanosecond form; its stamps then become seconds since the first IMU sample, and
 the other files must use that clock. The file formats are described in
-:mod:`jaxtraj.io.formats`.
+:mod:`jaxtraj.io.csv_formats` and :mod:`jaxtraj.io.json_formats`.
 
 Writing: :func:`write_recording` builds the whole folder under a temporary name and
 renames it into place at the end (:func:`~jaxtraj.io.tables.atomic_folder`), so a
@@ -42,25 +42,27 @@ from pathlib import Path
 
 import numpy as np
 
-from .formats import (
+from .csv_formats import (
     ImuSamples,
-    RecordingMeta,
-    read_camera,
     read_detections,
     read_image_index,
     read_imu,
-    read_meta,
-    read_object,
     read_poses,
     read_robot,
-    write_camera,
     write_detections,
     write_image_index,
     write_imu,
-    write_meta,
-    write_object,
     write_poses,
     write_robot,
+)
+from .json_formats import (
+    RecordingMeta,
+    read_camera,
+    read_meta,
+    read_object,
+    write_camera,
+    write_meta,
+    write_object,
 )
 from .records import CameraCalibration, Detections, ObjectModel, PoseStream
 from .tables import RecordingError, atomic_folder

@@ -1,7 +1,7 @@
 """A small strict CSV reader/writer, the recording error, and atomic file writes.
 
 Every file of a recording is read through :func:`read_table` (or the JSON/YAML readers in
-:mod:`jaxtraj.io.formats`), so bad input stops with one message of the form
+:mod:`jaxtraj.io.json_formats`), so bad input stops with one message of the form
 ``PATH:LINE: problem`` (:class:`RecordingError`), the line 1-based as an editor shows it.
 
 Writers go through :func:`atomic_write_text` / :func:`atomic_folder`: the result appears

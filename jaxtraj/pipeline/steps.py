@@ -29,15 +29,8 @@ from pathlib import Path
 
 import numpy as np
 
-from ..io.formats import (
-    read_poses,
-    write_camera,
-    write_detections,
-    write_json,
-    write_points,
-    write_poses,
-    write_tum,
-)
+from ..io.csv_formats import read_poses, write_detections, write_points, write_poses, write_tum
+from ..io.json_formats import write_camera, write_json
 from ..io.recording import Recording, read_recording, read_truth
 from ..io.tables import write_table
 
@@ -98,7 +91,7 @@ def step_calibrate(folder: Path, options=None, **files):
     if (folder / "recording.json").is_file():
         report = calibrate_recording(read_recording(folder), options)
     else:
-        from ..io.formats import write_json
+        from ..io.json_formats import write_json
 
         report = calibrate_folder(folder, options=options, **files)
         write_json(folder / "calibration.json", report.to_json())
@@ -291,7 +284,7 @@ def step_evaluate(recording: Path, out: Path | None = None, *, plots: bool = Tru
     ok = read_table(out / "assembly.csv", {"frame": "int", "t": "float", "ok": "int"})["ok"] > 0
     tracks = None
     if (out / "tracks.csv").exists():
-        from ..io.formats import read_points
+        from ..io.csv_formats import read_points
 
         tr = read_points(out / "tracks.csv")
         tracks = tr.points  # all of them, also those flagged as uncertain (tr.ok)

@@ -15,7 +15,8 @@ from pathlib import Path
 
 import numpy as np
 
-from ..io.formats import ImuNoise, ImuSamples, RecordingMeta, RobotNoise
+from ..io.csv_formats import ImuSamples
+from ..io.json_formats import ImuNoise, RecordingMeta, RobotNoise
 from ..io.recording import Recording, Truth, write_recording_files
 from ..io.records import CameraCalibration, ObjectModel, PoseStream, quat_to_matrix
 from ..io.tables import atomic_folder
