@@ -22,14 +22,13 @@ import argparse
 import sys
 from pathlib import Path
 
-EXIT_OK, EXIT_FAILED, EXIT_USAGE = 0, 1, 2
-
-#: Accuracy the simulated cell must reach (issue "pipeline"): assembly point, orientation.
-TARGET_POSITION_MM, TARGET_ORIENTATION_DEG = 1.0, 0.1
-
-
-class UsageError(Exception):
-    """Bad input or options: reported as one line, exit code 2."""
+# defined in ._cli_common (shared with .commands and .demo); re-exported here
+from ._cli_common import EXIT_FAILED as EXIT_FAILED
+from ._cli_common import EXIT_OK as EXIT_OK
+from ._cli_common import EXIT_USAGE as EXIT_USAGE
+from ._cli_common import TARGET_ORIENTATION_DEG as TARGET_ORIENTATION_DEG
+from ._cli_common import TARGET_POSITION_MM as TARGET_POSITION_MM
+from ._cli_common import UsageError as UsageError
 
 
 def _positive_int(text: str) -> int:

@@ -8,7 +8,7 @@ from pathlib import Path
 
 import jax
 
-from .cli import EXIT_FAILED, EXIT_OK, TARGET_ORIENTATION_DEG, TARGET_POSITION_MM
+from ._cli_common import EXIT_FAILED, EXIT_OK, TARGET_ORIENTATION_DEG, TARGET_POSITION_MM
 from .pipeline import steps
 
 

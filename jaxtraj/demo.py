@@ -21,6 +21,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ._cli_common import EXIT_FAILED, EXIT_OK, UsageError
 from .analysis import reconstructibility
 from .basis import DCTBasis
 from .pipeline.evaluate import rotation_error_deg
@@ -88,7 +89,6 @@ def _estimate(method: str, P, uv, times, weights, k: int, noise: float):
 
 def run_demo(args: Namespace) -> int:
     """Run the demo with parsed CLI options; returns the process exit code."""
-    from .cli import EXIT_FAILED, EXIT_OK, UsageError
     from .sim.scene import make_rigid_scene, make_scene
 
     if args.float32:
