@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import gc
 import os
 import shutil
 import tempfile
@@ -65,6 +66,33 @@ def pytest_unconfigure(config):
     """Delete this session's compilation cache (only in the process that created it)."""
     if _SESSION_CACHE is not None:
         shutil.rmtree(_SESSION_CACHE, ignore_errors=True)
+
+
+# Each compiled XLA:CPU executable keeps its code in a few memory mappings until jax drops it
+# from its caches, and Linux allows a process 65530 mappings (vm.max_map_count). One xdist
+# worker compiles over a thousand programs in a full run (test_estimators_smoothness.py alone
+# took a process from 425 to 14324 mappings; jax.clear_caches() brought it back to 710), and
+# past the limit LLVM's mmap fails and the worker dies with a segmentation fault inside a
+# compile (three fresh-clone runs each lost one test that way). So after any test that
+# leaves more than _MAX_MAPPINGS, the caches are cleared (later tests recompile what they use).
+_MAPS = Path("/proc/self/maps")
+_MAX_MAPPINGS = 25_000
+
+
+def _mappings() -> int:
+    try:
+        with _MAPS.open("rb") as f:
+            return sum(1 for _ in f)
+    except OSError:  # not Linux
+        return 0
+
+
+@pytest.fixture(autouse=True)
+def _bounded_compiled_code():
+    yield
+    if _mappings() > _MAX_MAPPINGS:
+        jax.clear_caches()
+        gc.collect()
 
 
 # One BLAS thread per process (also for notebook kernels and subprocesses): pytest-xdist
