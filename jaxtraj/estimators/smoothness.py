@@ -383,8 +383,13 @@ def _smooth(
     start_cov=None,
     curve_only=False,
     max_depth_uncertainty=None,
+    refine_grid=0,
 ):
-    """The traced body of :func:`smooth_trajectory` (inputs already validated)."""
+    """The traced body of :func:`smooth_trajectory` (inputs already validated).
+
+    ``refine_grid`` (criterion "ml"): that many times, evaluate the marginal likelihood at
+    the two geometric midpoints next to the grid's minimum and go on with those five points
+    (each halves the spacing about the minimum for two more evaluations)."""
     dtype = P.dtype
     F = P.shape[0]
     w = jnp.ones(F, dtype) if weights is None else weights
@@ -472,6 +477,13 @@ def _smooth(
             crit = jax.vmap(lambda q: ubre(q, H, g, e, J, x[:, :3])[0])(grid)
         if curve_only:
             return crit
+        for _ in range(refine_grid if criterion == "ml" else 0):
+            i = jnp.argmin(jnp.where(jnp.isfinite(crit), crit, jnp.inf))
+            i = jnp.clip(i, 1, grid.shape[0] - 2)
+            mid = jnp.sqrt(grid[i + jnp.array([-1, 0])] * grid[i + jnp.array([0, 1])])
+            c_mid = jax.vmap(lambda q: _neg2_log_evidence(H, g, c, A, Qinv, q, order, start))(mid)
+            grid = jnp.stack([grid[i - 1], mid[0], grid[i], mid[1], grid[i + 1]])
+            crit = jnp.stack([crit[i - 1], c_mid[0], crit[i], c_mid[1], crit[i + 1]])
         q = _argmin_log(grid, crit)
         # again from the nominal depth at the chosen q: the depths of the first solution
         # (q in the middle of the grid) can be far off where the camera moves slowly, and
