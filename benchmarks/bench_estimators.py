@@ -804,6 +804,8 @@ def trust_scene_rows(P, uv, times, w, Xs, sigma, compiled):
     for key, fn in calls.items():
         r = fn()
         rows[key] = _trajectory_stats(r.points, r.cov, r.status, Xs)
+        if hasattr(r, "dct_k"):  # estimate_points: where the DCT basis was chosen
+            rows[key]["dct"] = np.asarray(r.dct_k) > 0
         rows[key]["ms"] = 1e3 * time_call(fn, repeats=2).median / N
     r = reg_fn(P, uv, times, w)
     rows["reg"] = _trajectory_stats(r.points, None, r.status, Xs)
@@ -838,6 +840,8 @@ def _summarise(stats):
     }
     if "ms" in stats:
         out["ms_per_point"] = float(np.median(stats["ms"]))
+    if "dct" in stats:
+        out["dct_chosen"] = float(np.mean(stats["dct"]))
     return out
 
 
