@@ -32,9 +32,14 @@ def projection_matrix(
 
 
 def camera_centre(P: Float[ArrayLike, "3 4"]) -> Float[Array, " 3"]:
-    """The camera centre C with ``P [C; 1] = 0`` (assumes a finite camera)."""
+    """The camera centre C with ``P [C; 1] = 0`` (assumes a finite camera).
+
+    ``C = -M^-1 p4`` by the adjugate of ``M = P[:, :3]`` (cross products of its rows): no
+    LAPACK call, so it stays cheap inside vmapped, jit-compiled programs."""
     P = jnp.asarray(P)
-    return -jnp.linalg.solve(P[:, :3], P[:, 3])
+    m1, m2, m3 = P[0, :3], P[1, :3], P[2, :3]
+    a1, a2, a3 = jnp.cross(m2, m3), jnp.cross(m3, m1), jnp.cross(m1, m2)
+    return -(P[0, 3] * a1 + P[1, 3] * a2 + P[2, 3] * a3) / jnp.dot(m1, a1)
 
 
 def look_at(

@@ -39,6 +39,18 @@ def linearise(P, uv, X):
     return pi - uv, J, z
 
 
+def gauss_newton_blocks(P, uv, ww, X):
+    """Per-frame normal equations of the reprojection error linearised at ``X`` (F, 3),
+    weighted by ``ww`` (F,) [1/px^2]: ``H`` (F, 3, 3), ``g`` (F, 3), ``c`` with
+    ``J p ~ J X - e``, and ``e``, ``J`` themselves."""
+    e, J, _ = linearise(P, uv, X)
+    H = ww[:, None, None] * jnp.einsum("fai,faj->fij", J, J)
+    target = jnp.einsum("fai,fi->fa", J, X) - e
+    g = ww[:, None] * jnp.einsum("fai,fa->fi", J, target)
+    c = jnp.sum(ww * jnp.sum(target * target, axis=1))
+    return H, g, c, e, J
+
+
 def algebraic_blocks(P, uv):
     """The ray constraints ``(Q (F, 2, 3), q (F, 2))`` of paper eq. 4."""
     rows = P[:, :2, :] - uv[:, :, None] * P[:, 2:3, :]

@@ -29,7 +29,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..basis import dct_basis
-from ._common import linearise
+from ._common import gauss_newton_blocks, linearise
 
 #: Prior standard deviation of a non-constant coefficient's contribution per frame
 #: (``s / sqrt(F)``) [m]: 1 mm to 3 m in half decades.
@@ -37,15 +37,8 @@ AMPLITUDE_GRID = 10.0 ** np.arange(-3.0, 0.51, 0.5)
 
 
 def data_blocks(Pn, uv, w, X, sigma2):
-    """Gauss-Newton blocks of the reprojection error linearised at ``X`` (F, 3):
-    ``H`` (F, 3, 3), ``g`` (F, 3), ``c``, with ``J p ~ J X - e`` per frame."""
-    e, J, _ = linearise(Pn, uv, X)
-    ww = w / sigma2
-    H = ww[:, None, None] * jnp.einsum("fai,faj->fij", J, J)
-    target = jnp.einsum("fai,fi->fa", J, X) - e
-    g = ww[:, None] * jnp.einsum("fai,fa->fi", J, target)
-    c = jnp.sum(ww * jnp.sum(target * target, axis=1))
-    return H, g, c
+    """Gauss-Newton blocks ``H, g, c`` of the reprojection error linearised at ``X``."""
+    return gauss_newton_blocks(Pn, uv, w / sigma2, X)[:3]
 
 
 def _prior(theta, x_lin, s, dc_sd):

@@ -11,19 +11,13 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Float
 
+from ..camera import camera_centre
 from ..solve import Status
 
 
 def camera_centres(P: Float[Array, "F 3 4"]) -> Float[Array, "F 3"]:
-    """(F, 3) centres ``C`` with ``P [C; 1] = 0`` of finite cameras.
-
-    ``C = -M^-1 p4`` by the adjugate (cross products of the rows of ``M = P[:, :3]``), so
-    no LAPACK call enters the programs that use it."""
-    m1, m2, m3 = P[:, 0, :3], P[:, 1, :3], P[:, 2, :3]
-    a1, a2, a3 = jnp.cross(m2, m3), jnp.cross(m3, m1), jnp.cross(m1, m2)
-    det = jnp.sum(m1 * a1, axis=-1)
-    p4 = P[:, :, 3]
-    return -(p4[:, 0:1] * a1 + p4[:, 1:2] * a2 + p4[:, 2:3] * a3) / det[:, None]
+    """(F, 3) centres ``C`` with ``P [C; 1] = 0`` of finite cameras."""
+    return jax.vmap(camera_centre)(P)
 
 
 def _roughness(y: Float[Array, "F 3"], t: Float[Array, " F"], order: int) -> Float[Array, ""]:

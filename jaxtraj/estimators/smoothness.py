@@ -51,6 +51,7 @@ from ._common import (
     as_float,
     check_loss,
     check_positive,
+    gauss_newton_blocks,
     linearise,
     normalise_cameras,
     rho,
@@ -420,13 +421,7 @@ def _smooth(
 
     def gn_blocks(X, omega):
         """Data blocks of the reprojection error linearised at X."""
-        e, J, _ = linearise(Pn, uv, X)
-        ww = w * omega / sigma2
-        H = ww[:, None, None] * jnp.einsum("fai,faj->fij", J, J)
-        target = jnp.einsum("fai,fi->fa", J, X) - e  # J p ~ target
-        g = ww[:, None] * jnp.einsum("fai,fa->fi", J, target)
-        c = jnp.sum(ww * jnp.sum(target * target, axis=1))
-        return H, g, c, e, J
+        return gauss_newton_blocks(Pn, uv, w * omega / sigma2, X)
 
     def robust_weight(X):
         e, _, _ = linearise(Pn, uv, X)
