@@ -6,7 +6,7 @@ import pytest
 import jaxtraj as jt
 from jaxtraj.estimators import reconstruct_regularised, roughness_penalty, select_penalty_cv
 from jaxtraj.sim.scene import make_scene
-from tests.test_estimators_scenes import rmse, robot_scene
+from tests.test_estimators_scenes import dct_fit, rmse, robot_scene
 
 
 @pytest.mark.parametrize("order", [1, 2, 3])
@@ -46,17 +46,14 @@ def test_zero_penalty_equals_plain_solve_and_jit_vmap(rng):
         np.testing.assert_allclose(batched.points[i], one.points, atol=1e-11)
 
 
-# The fixed-k baselines, jit-compiled: one program per k, shared by both cases below (run
-# eagerly, every k costs about 70 small compilations).
-_FIXED_K = jax.jit(lambda P, uv, b, w: jt.reconstruct(P, uv, b, w, max_gain=np.inf).points)
-
-
 @pytest.mark.parametrize("camera,speed", [("random", 0.3), ("smooth", 3.0)])
 def test_regularised_beats_every_fixed_k(camera, speed):
     s = make_scene(jax.random.PRNGKey(0), camera=camera, camera_speed=speed, n_frames=80)
     fixed = []
+    # the fixed-k baselines by dense least squares (tests/test_estimators_scenes.dct_fit)
+    Phi = np.asarray(jt.dct_basis(s.times, 30))
     for k in (6, 10, 15, 20, 30):
-        points = _FIXED_K(s.P, s.uv, jt.dct_basis(s.times, k), s.weights)
+        points = dct_fit(s.P, s.uv, Phi[:, :k], s.weights)
         fixed.append(np.mean(np.linalg.norm(np.asarray(points) - np.asarray(s.points), axis=1)))
     res, basis, choice = reconstruct_regularised(s.P, s.uv, s.times, s.weights)
     err = np.mean(np.linalg.norm(np.asarray(res.points - s.points), axis=1))

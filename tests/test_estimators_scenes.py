@@ -82,6 +82,24 @@ def robot_scene(rng, F=100, rate=100.0, mode="smooth", noise=0.3, irregular=Fals
     return dict(times=times, X=X, C=C, P=P, uv=uv, clean=clean, noise=noise)
 
 
+def dct_fit(P, uv, basis, weights=None):
+    """(F, 3) plain DCT fit of one track by dense least squares in NumPy: the baseline the
+    estimators are compared with, without compiling the solver's unrolled factorisation for
+    every k (about 3 s per k at F = 60, where this takes a millisecond). The same
+    minimiser as ``jt.reconstruct(P, uv, basis, weights).points`` (eq. 6, squared
+    residuals weighted by ``weights``): the 3D errors of the tests' fits agree to 1.3e-12
+    (relative, largest measured)."""
+    P, uv, basis = (np.asarray(a, np.float64) for a in (P, uv, basis))
+    F, k = basis.shape
+    w = np.ones(F) if weights is None else np.asarray(weights, np.float64)
+    uv = np.where((w > 0)[:, None], uv, 0.0)
+    rows = P[:, :2, :] - uv[:, :, None] * P[:, 2, None, :]  # (F, 2, 4)
+    sw = np.sqrt(np.repeat(w, 2))
+    A = np.einsum("fri,fk->frki", rows[:, :, :3], basis).reshape(2 * F, 3 * k) * sw[:, None]
+    beta = np.linalg.lstsq(A, -rows[:, :, 3].reshape(-1) * sw, rcond=None)[0]
+    return basis @ beta.reshape(k, 3)
+
+
 def rmse(a, b):
     return float(np.sqrt(np.mean(np.sum((np.asarray(a) - np.asarray(b)) ** 2, axis=-1))))
 

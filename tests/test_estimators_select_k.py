@@ -11,13 +11,12 @@ import jaxtraj as jt
 from jaxtraj.estimators import select_k_cv, select_k_gain
 from jaxtraj.estimators.select_k import _prefix_solve
 from jaxtraj.solve import _factorise, normal_equations
-from tests.test_estimators_scenes import rmse, robot_scene
+from tests.test_estimators_scenes import dct_fit, rmse, robot_scene
 
 F = 60
 KS = (4, 6, 8, 10, 12, 14, 16)
 CV = jax.jit(lambda P, uv, t: select_k_cv(P, uv, t, KS))
 GAIN = jax.jit(lambda P, uv, t: select_k_gain(P, uv, t, KS, max_gain=3.0))
-DCT = jax.jit(lambda P, uv, b: jt.reconstruct_points(P, uv[None], b).points[0], static_argnums=())
 # the solver's conditioning gain, compiled (run eagerly, every k costs ~70 small compilations)
 SOLVER_GAIN = jax.jit(lambda P, uv, b: jt.reconstruct(P, uv, b).gain)
 PREFIX = jax.jit(_prefix_solve)
@@ -50,12 +49,18 @@ def test_gains_equal_solver_gain(rng):
     assert int(sel.k) == expected
 
 
+def _dct_errors(s):
+    """3D errors of the plain DCT fits with every k in KS (the columns of one basis)."""
+    basis = np.asarray(jt.dct_basis(s["times"], max(KS)))
+    return [rmse(dct_fit(s["P"], s["uv"], basis[:, :k]), s["X"]) for k in KS]
+
+
 def test_cv_choice_near_error_optimal_k():
     rng = np.random.default_rng(11)
     regrets = []
     for _ in range(4):
         s = robot_scene(rng, F=F, mode="random", noise=0.3)
-        errs = [rmse(DCT(s["P"], s["uv"], jt.dct_basis(s["times"], k)), s["X"]) for k in KS]
+        errs = _dct_errors(s)
         sel = CV(s["P"], s["uv"], s["times"])
         chosen = errs[KS.index(int(sel.k))]
         regrets.append(chosen / min(errs))
@@ -71,7 +76,7 @@ def test_gain_weighted_rule_on_fast_cameras():
     errs, chosen, by_reprojection = [], [], []
     for _ in range(6):  # F = 100: at F = 60 the gain rises so steeply that both agree
         s = robot_scene(rng, F=100, mode="fast", noise=0.4)
-        e = [rmse(DCT(s["P"], s["uv"], jt.dct_basis(s["times"], k)), s["X"]) for k in KS]
+        e = _dct_errors(s)
         sel = CV(s["P"], s["uv"], s["times"])
         score = np.where(np.asarray(sel.gain) <= 100.0, np.asarray(sel.score), np.inf)
         errs.append(e)
