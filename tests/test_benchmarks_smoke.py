@@ -28,9 +28,11 @@ TINY = bench_solve.Config(
     repeats=1,
     dense_max_points=12,
     dense_budget_s=5.0,
-    Fs=(24, 36),
-    ks=(3, 4),
-    Ns=(6, 12),
+    # the scaling sections rerun the main case: every new (F, k, N) is one more compilation
+    # of the solver (about 5 s each at -O0), and the smoke test checks that they run and agree
+    Fs=(24,),
+    ks=(4,),
+    Ns=(12,),
 )
 
 
