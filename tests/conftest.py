@@ -27,9 +27,8 @@ jax.config.update("jax_enable_x64", True)
 # ends (pytest_unconfigure), so every run starts cold, as CI must. The cache key includes the
 # program, the compile options and the jax/jaxlib version, so an edited function can never load
 # a stale executable. A folder set by the user (JAX_COMPILATION_CACHE_DIR) is used as it is.
-# Opt-in (JAXTRAJ_TEST_SHARED_CACHE=1): on a fresh clone (jax 0.9.2, 2 xdist workers) a worker
-# died with a segmentation fault inside jax's cache write (compilation_cache.
-# put_executable_and_time), and the cache had cut CPU time, not the suite's wall time.
+# Opt-in (JAXTRAJ_TEST_SHARED_CACHE=1): it cut CPU time, not the suite's wall time. (A worker
+# once died inside jax's cache write; the cause was the mapping limit handled below.)
 _SESSION_CACHE: str | None = None
 if "JAX_COMPILATION_CACHE_DIR" not in os.environ and os.environ.get(
     "JAXTRAJ_TEST_SHARED_CACHE", "0"
