@@ -104,15 +104,17 @@ class PointEstimate(eqx.Module):
         cov: (N, F, 3, 3) covariance of each position [m^2]: the smoother's posterior
             with the standard deviation along each ray raised to at least
             ``kappa |x - c| / 2`` (see the module notes).
-        posterior_cov: (N, F, 3, 3) the chosen smoother's posterior alone [m^2].
+        posterior_cov: (N, F, 3, 3) the chosen model's posterior alone [m^2].
         order: (N,) order of the smoothness prior chosen per point; 0 where a DCT basis
             was chosen.
         dct_k: (N,) size of the DCT basis chosen per point; 0 where a smoothness prior was.
-        depth_uncertainty: (N,) ``kappa`` of the chosen order: the along-ray error
+        depth_uncertainty: (N,) ``kappa`` of the chosen order (where a DCT basis was
+            chosen: the smallest ``kappa`` of the admissible orders): the along-ray error
             relative to the distance to the camera.
         kappas: (N, len(orders)) ``kappa`` of every candidate order.
         predicted_rmse: (N, len(orders)) predicted RMS 3D error of every candidate [m].
-        process_psd: (N,) noise density of the chosen order [m^2 / s^(2 order - 1)].
+        process_psd: (N,) noise density of the chosen order [m^2 / s^(2 order - 1)];
+            NaN where a DCT basis was chosen.
         rms_px: (N,) reprojection RMS of the chosen fit [px].
         num_observed: (N,) frames with non-zero weight.
         status: (N,) :class:`jaxtraj.Status` codes (int32); ``DEGENERATE`` where the depth
@@ -310,7 +312,8 @@ def estimate_points(
             (white-noise jerk) costs about 3x orders 1 and 2 together and helped only on
             the simulated cell's fast cameras (2.7 against 3.7 mm), so it is opt-in.
         dct_ks: candidate sizes of a DCT basis (:mod:`._dct_candidate`); ``()``: none;
-            default: those of ``DCT_KS`` (4, 6, 9, 12) up to ``F // 2``.
+            default: those of ``DCT_KS`` (4, 6, 9, 12) up to ``F // 2``. The DCT fits are
+            least squares on the pixels whatever ``loss`` is.
         max_depth_uncertainty: largest ``kappa`` (along-ray error relative to the
             distance to the camera) with which a track is reported ``Status.OK``.
         iterations, loss, loss_scale, depth_guess: as in
