@@ -29,7 +29,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..basis import dct_basis
-from ._common import gauss_newton_blocks, linearise
+from ..solve import _reprojection_rms
+from ._common import gauss_newton_blocks
 
 #: Prior standard deviation of a non-constant coefficient's contribution per frame
 #: (``s / sqrt(F)``) [m]: 1 mm to 3 m in half decades.
@@ -82,14 +83,15 @@ def _best_scale(theta, Hb, gb, c, x_lin, dc_sd):
     return grid[jnp.argmin(jnp.where(jnp.isfinite(crit), crit, jnp.inf))]
 
 
-def dct_fit(Pn, uv, w, times, sigma2, x_lin, k, dc_sd):
+def dct_fit(Pn, uv, w, times, sigma2, x_lin, blocks, k, dc_sd):
     """The DCT model of size ``k`` for one track: (-2 log evidence, points (F, 3),
     covariance (F, 3, 3), rms_px). The coefficient scale ``s`` is chosen on the data
-    linearised at ``x_lin``; the estimate, its evidence and covariance are then those of the
-    data linearised at the first estimate (one relinearisation)."""
+    linearised at ``x_lin`` (``blocks``: its ``data_blocks``, shared by every size); the
+    estimate, its evidence and covariance are then those of the data linearised at the
+    first estimate (one relinearisation)."""
     theta = dct_basis(times, k).astype(x_lin.dtype)
-    H, g, c = data_blocks(Pn, uv, w, x_lin, sigma2)
-    Hb, gb = _coefficient_blocks(theta, H, g)
+    Hb, gb = _coefficient_blocks(theta, *blocks[:2])
+    c = blocks[2]
     s = _best_scale(theta, Hb, gb, c, x_lin, dc_sd)
     _, beta, _ = _posterior(Hb, gb, c, *_prior(theta, x_lin, s, dc_sd))
     x = theta @ beta.reshape(k, 3)
@@ -101,9 +103,4 @@ def dct_fit(Pn, uv, w, times, sigma2, x_lin, k, dc_sd):
     Linv = jax.scipy.linalg.solve_triangular(L, jnp.eye(3 * k, dtype=x.dtype), lower=True)
     cov_b = (Linv.T @ Linv).reshape(k, 3, k, 3)
     cov = jnp.einsum("fj,jalb,fl->fab", theta, cov_b, theta)
-    e, _, _ = linearise(Pn, uv, x)
-    observed = w > 0
-    rms = jnp.sqrt(
-        jnp.sum(jnp.where(observed, jnp.sum(e * e, axis=1), 0.0)) / jnp.maximum(observed.sum(), 1)
-    )
-    return neg2, x, cov, rms
+    return neg2, x, cov, _reprojection_rms(Pn, uv, x, w > 0)

@@ -231,8 +231,9 @@ def _estimate_one(P, C, uv, times, w, orders, dct_ks, tau, opts):
         uv0 = jnp.where(w[:, None] > 0, uv, 0.0)
         sigma2 = opts["pixel_sigma"] ** 2
         Pn = normalise_cameras(P)
+        blocks = data_blocks(Pn, uv0, w, x_lin, sigma2)
         for k in dct_ks:
-            neg2, x, c, r = dct_fit(Pn, uv0, w, times, sigma2, x_lin, k, START_SD[0])
+            neg2, x, c, r = dct_fit(Pn, uv0, w, times, sigma2, x_lin, blocks, k, START_SD[0])
             ok_k = determined & jnp.isfinite(neg2) & jnp.all(jnp.isfinite(x))
             score.append(jnp.where(ok_k, neg2, jnp.inf)[None])
             points.append(x)
