@@ -12,7 +12,7 @@ from __future__ import annotations
 import jax.numpy as jnp
 from jaxtyping import Array, Float
 
-__all__ = ["cholesky_small", "solve_triangular_small"]
+__all__ = ["cholesky_small", "det3", "solve_triangular_small"]
 
 
 def cholesky_small(A: Float[Array, "s s"]) -> Float[Array, "s s"]:
@@ -37,3 +37,9 @@ def solve_triangular_small(C: Float[Array, "s s"], B: Array, *, trans: int = 0) 
     for i in range(s) if trans == 0 else range(s - 1, -1, -1):
         x = x.at[i].set((B[i] - M[i] @ x) / M[i, i])  # unknown rows of x are still zero
     return x
+
+
+def det3(M: Float[Array, "*b 3 3"]) -> Float[Array, " *b"]:
+    """Determinants of 3x3 matrices (any leading axes) as triple products of their rows:
+    ``jnp.linalg.det`` is an LU factorisation, a batched LAPACK call over the leading axes."""
+    return jnp.sum(M[..., 0, :] * jnp.cross(M[..., 1, :], M[..., 2, :]), axis=-1)

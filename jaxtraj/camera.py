@@ -118,7 +118,19 @@ def undistort_points(
         flat = xy.reshape(-1, 2)
         r = distort(flat, dist) - target.reshape(-1, 2)
         J = jac(flat)
-        delta = jnp.linalg.solve(J, r[..., None])[..., 0]
+        # 2x2 solve in closed form: batched over pixels, a LAPACK solve would be a
+        # batched LAPACK call (deadlocked on 2 cores with jaxlib 0.10, see jaxtraj._spd)
+        det = J[:, 0, 0] * J[:, 1, 1] - J[:, 0, 1] * J[:, 1, 0]
+        delta = (
+            jnp.stack(
+                [
+                    J[:, 1, 1] * r[:, 0] - J[:, 0, 1] * r[:, 1],
+                    J[:, 0, 0] * r[:, 1] - J[:, 1, 0] * r[:, 0],
+                ],
+                axis=-1,
+            )
+            / det[:, None]
+        )
         return (flat - delta).reshape(xy.shape), None
 
     xy, _ = jax.lax.scan(step, target, None, length=iterations)

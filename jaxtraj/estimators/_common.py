@@ -8,6 +8,7 @@ import numpy as np
 from jaxtyping import Array, Float
 
 from .._checks import check_shape, check_tracks, is_concrete
+from .._linalg import det3
 
 LOSSES = ("l2", "huber", "cauchy")
 
@@ -18,7 +19,7 @@ def normalise_cameras(P: Float[Array, "F 3 4"]) -> Float[Array, "F 3 4"]:
     Then ``p3 . [X; 1]`` is the depth of X in front of the camera, and the algebraic
     residual ``Q_i X - q_i`` equals depth times the reprojection error in pixels.
     """
-    s = jnp.sign(jnp.linalg.det(P[:, :, :3]))
+    s = jnp.sign(det3(P[:, :, :3]))
     s = jnp.where(s == 0, 1.0, s)
     n = jnp.linalg.norm(P[:, 2, :3], axis=-1)
     return P * (s / n)[:, None, None]

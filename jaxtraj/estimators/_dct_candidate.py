@@ -28,6 +28,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .._spd import inverse_cholesky, matvec, vecmat
 from ..basis import dct_basis
 from ..solve import _reprojection_rms
 from ._common import gauss_newton_blocks
@@ -58,19 +59,21 @@ def _coefficient_blocks(theta, H, g):
 
 
 def _posterior(Hb, gb, c, prec, mean):
-    """-2 log evidence, coefficients (3k,) and the Cholesky factor of their precision."""
+    """-2 log evidence, coefficients (3k,) and ``W = L^-1``, the inverse Cholesky factor
+    of their precision ``L L^T`` (no LAPACK call: batched over tracks and scales, LAPACK's
+    Cholesky deadlocked on 2 cores with jaxlib 0.10, see :mod:`jaxtraj._spd`)."""
     b = gb + prec * mean
-    L = jnp.linalg.cholesky(Hb + jnp.diag(prec))
-    y = jax.scipy.linalg.solve_triangular(L, b, lower=True)
-    beta = jax.scipy.linalg.solve_triangular(L.T, y, lower=False)
+    W = inverse_cholesky(Hb + jnp.diag(prec))
+    y = matvec(W, b)
+    beta = vecmat(y, W)
     neg2 = (
         c
         + jnp.sum(prec * mean * mean)
         - jnp.sum(y * y)
-        + 2.0 * jnp.sum(jnp.log(jnp.diagonal(L)))
+        - 2.0 * jnp.sum(jnp.log(jnp.diagonal(W)))
         - jnp.sum(jnp.log(prec))
     )
-    return neg2, beta, L
+    return neg2, beta, W
 
 
 def _best_scale(theta, Hb, gb, c, x_lin, dc_sd):
@@ -97,10 +100,9 @@ def dct_fit(Pn, uv, w, times, sigma2, x_lin, blocks, k, dc_sd):
     x = theta @ beta.reshape(k, 3)
     H, g, c = data_blocks(Pn, uv, w, x, sigma2)
     Hb, gb = _coefficient_blocks(theta, H, g)
-    neg2, beta, L = _posterior(Hb, gb, c, *_prior(theta, x, s, dc_sd))
+    neg2, beta, Linv = _posterior(Hb, gb, c, *_prior(theta, x, s, dc_sd))
     x = theta @ beta.reshape(k, 3)
     # covariance of the coefficients N^-1, then of each x_f = (theta_f kron I3)' beta
-    Linv = jax.scipy.linalg.solve_triangular(L, jnp.eye(3 * k, dtype=x.dtype), lower=True)
     cov_b = (Linv.T @ Linv).reshape(k, 3, k, 3)
     cov = jnp.einsum("fj,jalb,fl->fab", theta, cov_b, theta)
     return neg2, x, cov, _reprojection_rms(Pn, uv, x, w > 0)

@@ -21,11 +21,11 @@ from __future__ import annotations
 import equinox as eqx
 import jax
 import jax.numpy as jnp
-import jax.scipy.linalg as jsl
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
 from .._checks import check_shape
+from .._spd import inverse_cholesky
 from ..solve import _kron_sum, normal_equations
 from ._common import as_float, validate_track
 
@@ -146,8 +146,11 @@ def dct_covariance(
         blocks = blocks + jnp.einsum("fia,fab,fjb->fij", Gp, pose_cov, Gp)
     S = _kron_sum(basis, blocks)
     dd = jax.lax.rsqrt(jnp.maximum(jnp.diag(N), jnp.finfo(P.dtype).tiny))
-    chol = jnp.linalg.cholesky(N * dd[:, None] * dd[None, :])
-    Ninv_S = dd[:, None] * jsl.cho_solve((chol, True), dd[:, None] * S)
-    cov = dd[:, None] * jsl.cho_solve((chol, True), dd[:, None] * Ninv_S.T)
+    # N^-1 = D W^T W D with W the inverse Cholesky factor of the equilibrated D N D; no
+    # LAPACK call (batched over points or design samples it would be a batched LAPACK
+    # call, which deadlocked on 2 cores with jaxlib 0.10, see jaxtraj._spd)
+    W = inverse_cholesky(N * dd[:, None] * dd[None, :])
+    WD = W * dd[None, :]
+    cov = WD.T @ (WD @ S @ WD.T) @ WD
     cov = 0.5 * (cov + cov.T)
     return ReconstructionCovariance(coeffs=cov, points=points_covariance(basis, cov))

@@ -53,6 +53,7 @@ import numpy as np
 from jaxtyping import ArrayLike, Float
 
 from .._checks import check_shape
+from .._linalg import cholesky_small, solve_triangular_small
 from ..solve import Status
 from ._common import as_float, check_positive, linearise, normalise_cameras, validate_track
 from .smoothness import Smoothed, _q_unit, _transition, _validate_batch, _validate_start
@@ -79,6 +80,20 @@ def _symmetric(C):
     return 0.5 * (C + jnp.swapaxes(C, -1, -2))
 
 
+def _inv2(S):
+    """Inverse of a 2x2 matrix in closed form."""
+    det = S[0, 0] * S[1, 1] - S[0, 1] * S[1, 0]
+    return jnp.array([[S[1, 1], -S[0, 1]], [-S[1, 0], S[0, 0]]], S.dtype) / det
+
+
+def _spd_solve(A, B):
+    """``A^-1 B`` for a small SPD ``A`` by its Cholesky factor, without LAPACK: under vmap
+    over points a LAPACK call becomes a batched one (deadlocked on 2 cores with jaxlib
+    0.10, see :mod:`jaxtraj._spd`)."""
+    L = cholesky_small(A)
+    return solve_triangular_small(L, solve_triangular_small(L, B), trans=1)
+
+
 def _project(P, X):
     """Pixels ``pi(P X)`` (.., 2) of positions X (.., 3) for one camera P (3, 4)."""
     h = X @ P[:, :3].T + P[:, 3]
@@ -92,7 +107,7 @@ def _moments_cubature(P, mean, cov):
     by the spherical-radial cubature rule."""
     s = mean.shape[0]
     jitter = jnp.finfo(cov.dtype).eps * (jnp.trace(cov) / s + jnp.finfo(cov.dtype).tiny)
-    L = jnp.linalg.cholesky(cov + jitter * jnp.eye(s, dtype=cov.dtype))
+    L = cholesky_small(cov + jitter * jnp.eye(s, dtype=cov.dtype))
     offsets = jnp.sqrt(float(s)) * jnp.concatenate([L.T, -L.T])  # (2 s, s)
     Z = _project(P, mean[:3] + offsets[:, :3])
     z = jnp.mean(Z, axis=0)
@@ -128,9 +143,10 @@ def kalman_smoother(moments, frames, z, w, A, Q, m0, C0, sigma2, gate, smoother)
         C_pred = _symmetric(Ai @ C @ Ai.T + Qi)
         zhat, S, Cxz = moments(frame, m_pred, C_pred)
         S = _symmetric(S) + (sigma2 / jnp.where(wi > 0, wi, 1.0)) * eye2
-        K = jnp.linalg.solve(S, Cxz.T).T
+        S_inv = _inv2(S)
+        K = Cxz @ S_inv
         r = zi - zhat
-        use = (wi > 0) & (r @ jnp.linalg.solve(S, r) <= gate)
+        use = (wi > 0) & (r @ S_inv @ r <= gate)
         m_new = jnp.where(use, m_pred + K @ r, m_pred)
         C_new = jnp.where(use, _symmetric(C_pred - K @ S @ K.T), C_pred)
         return (m_new, C_new), (m_new, C_new, m_pred, C_pred, use)
@@ -142,7 +158,7 @@ def kalman_smoother(moments, frames, z, w, A, Q, m0, C0, sigma2, gate, smoother)
     def back(carry, inputs):
         m_next, C_next = carry
         m, C, m_pred_next, C_pred_next, A_next = inputs
-        G = jnp.linalg.solve(C_pred_next, A_next @ C).T  # C A^T C_pred^-1
+        G = _spd_solve(C_pred_next, A_next @ C).T  # C A^T C_pred^-1
         m_s = m + G @ (m_next - m_pred_next)
         C_s = _symmetric(C + G @ (C_next - C_pred_next) @ G.T)
         return (m_s, C_s), (m_s, C_s)

@@ -44,6 +44,7 @@ import numpy as np
 from jaxtyping import Array, ArrayLike, Float, Int
 
 from .._checks import check_shape, check_tracks, is_concrete
+from .._linalg import cholesky_small, solve_triangular_small
 from ..solve import Status
 from . import _blocktri as bt
 from ._common import (
@@ -409,7 +410,11 @@ def _smooth(
     start = None
     if start_mean is not None:  # in the solver's time unit tau
         cov_tau = start_cov / (unit[:, None] * unit[None, :])
-        start = (jnp.linalg.inv(cov_tau), start_mean.reshape(-1) / unit)
+        L0 = cholesky_small(cov_tau)  # no LAPACK call (see jaxtraj._spd)
+        info = solve_triangular_small(
+            L0, solve_triangular_small(L0, jnp.eye(3 * order, dtype=dtype)), trans=1
+        )
+        start = (info, start_mean.reshape(-1) / unit)
 
     Qa, qa = algebraic_blocks(Pn, uv)
     QtQ = jnp.einsum("fai,faj->fij", Qa, Qa)

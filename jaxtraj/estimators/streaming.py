@@ -21,10 +21,10 @@ from __future__ import annotations
 import equinox as eqx
 import jax
 import jax.numpy as jnp
-import jax.scipy.linalg as jsl
 from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
 from .._checks import check_shape
+from .._spd import inverse_cholesky, matvec, vecmat
 from ..basis import DCTBasis
 
 __all__ = [
@@ -167,9 +167,13 @@ def stream_estimate(
     # the ridge's bias from every well-determined direction (error factor (ridge/lambda)^2).
     ridge = jnp.sqrt(jnp.finfo(dtype).eps)
     Ns = N * d[:, None] * d[None, :] + ridge * jnp.eye(3 * k, dtype=dtype)
-    chol = jnp.linalg.cholesky(Ns)
-    beta = d * jsl.cho_solve((chol, True), d * b)
-    beta = beta + d * jsl.cho_solve((chol, True), d * (b - N @ beta))  # refinement
+    W = inverse_cholesky(Ns)  # no LAPACK: many tracks run under vmap (see jaxtraj._spd)
+
+    def solve(rhs):
+        return d * vecmat(matvec(W, d * rhs), W)
+
+    beta = solve(b)
+    beta = beta + solve(b - N @ beta)  # refinement
     coeffs = beta.reshape(k, 3)
     latest = state.times[(state.head - 1) % state.times.shape[0]]
     t = latest if time is None else jnp.asarray(time, dtype)

@@ -21,6 +21,7 @@ import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Bool, Float, PRNGKeyArray
 
 from .._checks import check_shape
+from .._linalg import det3
 from ..basis import dct_basis
 from .camera_paths import (
     CameraPath,
@@ -152,7 +153,7 @@ def _observe(key, P, points, det, image_size):
     shape = X.shape[:2]
 
     h = jnp.einsum("fij,fmj->fmi", P[:, :, :3], X) + P[:, None, :, 3]
-    depth = h[..., 2] * jnp.sign(jnp.linalg.det(P[:, :, :3]))[:, None]
+    depth = h[..., 2] * jnp.sign(det3(P[:, :, :3]))[:, None]
     in_front = depth > 0
     z = jnp.where(in_front, h[..., 2], 1.0)  # double-where: finite gradients behind
     uv_true = h[..., :2] / z[..., None]
