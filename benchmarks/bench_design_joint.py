@@ -9,7 +9,7 @@ stationarity), the expected mean error and the constraints on a grid 10x finer.
 Usage::
 
     python benchmarks/bench_design_joint.py [--frames 60] [--starts 8] [--inner-steps 500]
-        [--out OUT/]
+        [--estimator dct|smoother1|smoother2] [--out OUT/]
 
 Float64 is enabled below (a benchmark script may do so; library code never does).
 """
@@ -35,9 +35,17 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--frames", type=int, default=60)
     parser.add_argument("--starts", type=int, default=8)
     parser.add_argument("--inner-steps", type=int, default=500)
+    parser.add_argument(
+        "--estimator",
+        choices=("dct", "smoother1", "smoother2"),
+        default="dct",
+        help="the estimator whose expected error is minimised",
+    )
     parser.add_argument("--out", default=None, help="also write the design's files here")
     args = parser.parse_args(argv)
     spec = example_cell(frames=args.frames, starts=args.starts)
+    if args.estimator != "dct":
+        spec.method, spec.order = "smoother", int(args.estimator[-1])
     res = design_cell(spec, inner_steps=args.inner_steps)
     best, designs = res["best"], res["designs"]
     print(f"design with compilation: {res['seconds']:.1f} s")
@@ -63,6 +71,7 @@ def main(argv: list[str] | None = None) -> int:
         res["basis"],
         inits,
         objective=spec.objective,
+        estimator=args.estimator,
         inner_steps=args.inner_steps,
     )
     warm.theta.block_until_ready()

@@ -88,6 +88,11 @@ def example_cell(frames: int = 60, duration: float = 10.0, starts: int = 8) -> C
     )
 
 
+def estimator_name(spec: CellSpec) -> str:
+    """The ``estimator`` argument of :func:`design_joint_path` for a cell's estimator."""
+    return "dct" if spec.method == "dct" else f"smoother{spec.order}"
+
+
 def _start_configuration(spec: CellSpec, chain) -> np.ndarray:
     """The start configuration: given, or by IK for the camera at ``camera_start`` looking
     at the first prediction (``ValueError`` naming the pose when it cannot be reached)."""
@@ -168,6 +173,7 @@ def design_cell(spec: CellSpec, *, inner_steps: int = 500) -> dict:
         basis,
         inits,
         objective=spec.objective,
+        estimator=estimator_name(spec),
         pixel_sigma=spec.pixel_sigma,
         inner_steps=inner_steps,
     )
@@ -221,6 +227,7 @@ def write_design(out: str | Path, spec: CellSpec, result: dict, plots: bool = Tr
     designs = result["designs"]
     report = {
         "objective": spec.objective,
+        "estimator": estimator_name(spec),
         "expected_mean_error_m": float(best.expected_mean_error),
         "expected_rms_error_m": float(best.expected_error),
         "constraints": best.report(),

@@ -82,5 +82,12 @@ def test_cell_or_example_but_not_both(tmp_path, capsys):
     assert "give either CELL.json or --example" in capsys.readouterr().err
     with pytest.raises(ValueError, match=r"'design\.objective'"):
         cell_from_dict(_cell(design={"objective": "speed"}))
-    with pytest.raises(ValueError, match=r"'estimator\.method': only 'dct'"):
-        cell_from_dict(_cell(estimator={"method": "smoother"}))
+    with pytest.raises(ValueError, match=r"'estimator\.method': expected 'dct'"):
+        cell_from_dict(_cell(estimator={"method": "kalman"}))
+    with pytest.raises(ValueError, match=r"'order' to 'smoother'"):
+        cell_from_dict(_cell(estimator={"method": "dct", "order": 2}))
+    with pytest.raises(ValueError, match=r"'estimator\.order': expected 1 or 2"):
+        cell_from_dict(_cell(estimator={"method": "smoother", "order": 3}))
+    spec = cell_from_dict(_cell(estimator={"method": "smoother", "order": 1}))
+    assert (spec.method, spec.order) == ("smoother", 1)
+    assert cell_from_dict(spec.to_dict()).to_dict() == spec.to_dict()

@@ -3,6 +3,8 @@
 * :mod:`.path` - the camera path model (few parameters, starts at the start pose, looks at
   the predicted workpiece point).
 * :mod:`.objectives` - expected reconstruction error and eta, differentiable.
+* :mod:`.smoother_error` - expected error of the smoothness-prior smoother (the per-point
+  estimator): the prior's bias plus the noise variance, exact for the linearised smoother.
 * :mod:`.constraints` - workspace, stand-off, field of view, velocity, acceleration, end
   pose, as normalised constraint values.
 * :mod:`.optimise` - penalty continuation with optimistix BFGS over several initial guesses.
@@ -37,3 +39,7 @@ from .optimise import PathDesign as PathDesign
 from .optimise import design_camera_path as design_camera_path
 from .optimise import evaluate_path as evaluate_path
 from .path import CameraPathModel as CameraPathModel
+from .smoother_error import (
+    expected_smoother_errors_for_cameras as expected_smoother_errors_for_cameras,
+)
+from .smoother_error import smoother_error_terms as smoother_error_terms

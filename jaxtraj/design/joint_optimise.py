@@ -32,10 +32,14 @@ from .joint_path import (
     projection_matrices,
 )
 from .objectives import expected_errors_for_cameras
+from .smoother_error import expected_smoother_errors_for_cameras
 
 __all__ = ["JointPathDesign", "design_joint_path", "evaluate_joint_path"]
 
 JOINT_OBJECTIVES = ("mean_error", "error", "eta")
+#: estimators a path can be designed for: the DCT of the paper (basis ``basis``) and the
+#: smoothness-prior smoother of :func:`jaxtraj.estimate_points` (order 1 or 2)
+ESTIMATORS = ("dct", "smoother1", "smoother2")
 
 
 class JointPathDesign(eqx.Module):
@@ -43,7 +47,8 @@ class JointPathDesign(eqx.Module):
 
     Attributes:
         theta: (p, n) path parameters (see :class:`~jaxtraj.design.JointPathModel`).
-        expected_error: expected RMS error of the DCT reconstruction [m].
+        expected_error: expected RMS error of the reconstruction [m] (the estimator the
+            path is designed for: the DCT or the smoothness-prior smoother).
         expected_mean_error: expected mean Euclidean error (Jensen bound) [m].
         violation: (C,) largest normalised value per constraint, in the order of
             :data:`~jaxtraj.design.joint_path.JOINT_CONSTRAINTS` (<= 0: satisfied).
@@ -78,6 +83,7 @@ class JointPathDesign(eqx.Module):
 
 class _Problem(eqx.Module):
     kind: str = eqx.field(static=True)
+    estimator: str = eqx.field(static=True)
     model: JointPathModel
     cell: RobotCell
     predicted: Array
@@ -89,7 +95,12 @@ class _Problem(eqx.Module):
     def errors(self, theta):
         T_w_c = camera_poses(self.cell, self.model.joints_at_images(theta))
         P = projection_matrices(self.cell, T_w_c)
-        return expected_errors_for_cameras(P, self.samples, self.basis, self.pixel_sigma)
+        if self.estimator == "dct":
+            return expected_errors_for_cameras(P, self.samples, self.basis, self.pixel_sigma)
+        order = int(self.estimator[-1])
+        return expected_smoother_errors_for_cameras(
+            P, self.samples, self.model.times, self.pixel_sigma, order
+        )
 
     def objective(self, theta):
         if self.kind == "eta":  # maximise the geometric mean of eta over the samples
@@ -164,11 +175,25 @@ def _evaluate(thetas, stationarity, problem: _Problem, feasibility_tol, stationa
     return jax.vmap(one)(thetas, stationarity)
 
 
-def _problem(objective, model, cell, predicted, samples, basis, pixel_sigma, dtype, margin=0.0):
+def _problem(
+    objective,
+    model,
+    cell,
+    predicted,
+    samples,
+    basis,
+    pixel_sigma,
+    dtype,
+    margin=0.0,
+    estimator="dct",
+):
     if objective not in JOINT_OBJECTIVES:
         raise ValueError(f"objective: expected one of {JOINT_OBJECTIVES}, got {objective!r}")
+    if estimator not in ESTIMATORS:
+        raise ValueError(f"estimator: expected one of {ESTIMATORS}, got {estimator!r}")
     return _Problem(
         objective,
+        estimator,
         model,
         cell,
         jnp.asarray(predicted, dtype),
@@ -189,11 +214,21 @@ def evaluate_joint_path(
     *,
     pixel_sigma: float = 0.3,
     feasibility_tol: float = 1e-3,
+    estimator: str = "dct",
 ) -> JointPathDesign:
-    """Errors and constraint report of given paths (leading axis B; stationarity nan)."""
+    """Errors (for ``estimator``, see :func:`design_joint_path`) and constraint report of
+    given paths (leading axis B; stationarity nan)."""
     thetas = jnp.asarray(thetas)
     problem = _problem(
-        "mean_error", model, cell, predicted, samples, basis, pixel_sigma, thetas.dtype
+        "mean_error",
+        model,
+        cell,
+        predicted,
+        samples,
+        basis,
+        pixel_sigma,
+        thetas.dtype,
+        estimator=estimator,
     )
     nan = jnp.full(thetas.shape[:1], jnp.nan, thetas.dtype)
     return _evaluate(thetas, nan, problem, feasibility_tol, 0.0)
@@ -208,6 +243,7 @@ def design_joint_path(
     inits: Float[ArrayLike, "B p n"],
     *,
     objective: str = "mean_error",
+    estimator: str = "dct",
     pixel_sigma: float = 0.3,
     penalties: tuple[float, ...] = (10.0, 30.0, 100.0, 100.0, 100.0, 100.0, 100.0, 100.0),
     inner_steps: int = 500,
@@ -229,6 +265,12 @@ def design_joint_path(
         objective: ``"mean_error"`` (expected mean Euclidean error, default),
             ``"error"`` (expected RMS error) or ``"eta"`` (maximise Park et al.'s eta,
             geometric mean over the samples; cheap, but blind to conditioning).
+        estimator: whose error the objective is: ``"dct"`` (the paper's DCT with
+            ``basis``; :func:`~jaxtraj.design.expected_errors_for_cameras`) or
+            ``"smoother1"`` / ``"smoother2"`` (the smoothness prior of that order, as
+            :func:`jaxtraj.estimate_points` fits it, with its noise density chosen by the
+            expected marginal likelihood; bias and noise variance of the linearised
+            smoother, :mod:`jaxtraj.design.smoother_error`).
         pixel_sigma: detection noise [px].
         penalties: ``rho`` per augmented-Lagrangian round.
         inner_steps: BFGS steps per round; rtol: its tolerance.
@@ -248,7 +290,16 @@ def design_joint_path(
             f"inits: expected shape (B, {model.shape[0]}, {model.shape[1]}), got {inits.shape}"
         )
     problem = _problem(
-        objective, model, cell, predicted, samples, basis, pixel_sigma, inits.dtype, grid_margin
+        objective,
+        model,
+        cell,
+        predicted,
+        samples,
+        basis,
+        pixel_sigma,
+        inits.dtype,
+        grid_margin,
+        estimator,
     )
     rhos = jnp.asarray(penalties, inits.dtype)
     thetas, stationarity = _design(inits, problem, rhos, inner_steps, rtol)

@@ -14,7 +14,8 @@ A JSON object (SI units except where a key says ``_deg``)::
                  "half_fov_deg": 19, "fov_margin_deg": 3, "keep_out_radius": 0.4,
                  "floor_z": 0.0, "floor_clearance": 0.1},            # all optional
       "end": {"offset": [0, 0, 0.6], "tolerance": 0.05},             # optional
-      "estimator": {"method": "dct", "k": 12, "pixel_sigma": 0.3},   # optional
+      "estimator": {"method": "dct", "k": 12, "pixel_sigma": 0.3},   # optional; or
+                   {"method": "smoother", "order": 2, "pixel_sigma": 0.3}  # estimate_points' prior
       "design": {"starts": 8, "n_control": 12, "objective": "mean_error",
                  "plausible_extent": 0.03, "plausible_samples": 2, "seed": 0}
     }
@@ -58,6 +59,7 @@ class CellSpec:
     end_tolerance: float = 0.05
     method: str = "dct"
     k: int = 12
+    order: int = 2
     pixel_sigma: float = 0.3
     starts: int = 8
     n_control: int = 12
@@ -87,7 +89,11 @@ class CellSpec:
                 "floor_z": self.floor_z,
                 "floor_clearance": self.floor_clearance,
             },
-            "estimator": {"method": self.method, "k": self.k, "pixel_sigma": self.pixel_sigma},
+            "estimator": (
+                {"method": self.method, "k": self.k, "pixel_sigma": self.pixel_sigma}
+                if self.method == "dct"
+                else {"method": self.method, "order": self.order, "pixel_sigma": self.pixel_sigma}
+            ),
             "design": {
                 "starts": self.starts,
                 "n_control": self.n_control,
@@ -245,12 +251,22 @@ def cell_from_dict(data: dict, where: str = "CELL.json") -> CellSpec:
         if "tolerance" in end:
             spec.end_tolerance = _number(f"{where}: 'end.tolerance'", end["tolerance"], True)
     est = _object(
-        f"{where}: 'estimator'", data.get("estimator", {}), {"method", "k", "pixel_sigma"}
+        f"{where}: 'estimator'", data.get("estimator", {}), {"method", "k", "order", "pixel_sigma"}
     )
-    if est.get("method", "dct") != "dct":
+    spec.method = est.get("method", "dct")
+    if spec.method not in ("dct", "smoother"):
         raise ValueError(
-            f"{where}: 'estimator.method': only 'dct' is designed for so far, got {est['method']!r}"
+            f"{where}: 'estimator.method': expected 'dct' (the paper's DCT) or 'smoother' "
+            f"(the smoothness prior of estimate_points), got {spec.method!r}"
         )
+    if ("k" in est and spec.method != "dct") or ("order" in est and spec.method != "smoother"):
+        raise ValueError(
+            f"{where}: 'estimator': 'k' belongs to method 'dct', 'order' to 'smoother'"
+        )
+    if "order" in est:
+        if est["order"] not in (1, 2) or isinstance(est["order"], bool):
+            raise ValueError(f"{where}: 'estimator.order': expected 1 or 2, got {est['order']!r}")
+        spec.order = est["order"]
     if "k" in est:
         k = est["k"]
         if isinstance(k, bool) or not isinstance(k, int) or not 2 <= k or 2 * times.size < 3 * k:
