@@ -34,9 +34,7 @@ def scene():
 
     paths = {
         "orbit": cams(orbit_camera(x, radius=0.8, angular_speed=1.5, height=0.5, times=times)),
-        "slow orbit": cams(
-            orbit_camera(x, radius=0.8, angular_speed=0.2, height=0.5, times=times)
-        ),
+        "slow orbit": cams(orbit_camera(x, radius=0.8, angular_speed=0.2, height=0.5, times=times)),
         "random": cams(random_discontinuous_camera(jax.random.PRNGKey(4), x)),
         "follower": cams(following_camera(x, jnp.array([0.0, -0.3, 0.8]))),
     }
@@ -53,9 +51,7 @@ def _monte_carlo(P, x, times, fit):
 @pytest.mark.parametrize(
     "camera, dominant, least_share", [("orbit", "bias", 0.5), ("random", "noise", 0.2)]
 )
-def test_predicted_error_matches_monte_carlo_of_the_estimator(
-    scene, camera, dominant, least_share
-):
+def test_predicted_error_matches_monte_carlo_of_the_estimator(scene, camera, dominant, least_share):
     """Within 15 % of the RMS error of ``estimate_points`` (order-2 prior, its own noise
     density per draw) and of the smoother at the predicted density, over 200 draws; the
     orbit's error is mostly the prior's bias, the random camera's has a large noise part."""
@@ -67,17 +63,17 @@ def test_predicted_error_matches_monte_carlo_of_the_estimator(
         P,
         x,
         times,
-        lambda P, uv, t: smooth_points(
-            P, uv, t, order=2, pixel_sigma=SIGMA, process_psd=float(q)
-        ).points,
+        lambda P, uv, t: (
+            smooth_points(P, uv, t, order=2, pixel_sigma=SIGMA, process_psd=float(q)).points
+        ),
     )
     chosen = _monte_carlo(
         P,
         x,
         times,
-        lambda P, uv, t: estimate_points(
-            P, uv, t, pixel_sigma=SIGMA, orders=(2,), dct_ks=()
-        ).points,
+        lambda P, uv, t: (
+            estimate_points(P, uv, t, pixel_sigma=SIGMA, orders=(2,), dct_ks=()).points
+        ),
     )
     assert abs(predicted / fixed - 1) < 0.15, (predicted, fixed)
     assert abs(predicted / chosen - 1) < 0.15, (predicted, chosen)
@@ -96,9 +92,9 @@ def test_order_one_slow_orbit_bias_matches_monte_carlo(scene):
         P,
         x,
         times,
-        lambda P, uv, t: smooth_points(
-            P, uv, t, order=1, pixel_sigma=SIGMA, process_psd=float(q)
-        ).points,
+        lambda P, uv, t: (
+            smooth_points(P, uv, t, order=1, pixel_sigma=SIGMA, process_psd=float(q)).points
+        ),
     )
     assert abs(predicted / mc - 1) < 0.15, (predicted, mc)
     assert predicted > 0.1  # [m]: the slide along the rays, not the pixel noise

@@ -72,7 +72,7 @@ def test_block_tridiagonal_solver_matches_dense(rng, s):
     S = np.asarray(bt.diag_inverse(chol))
     for i in range(F):
         np.testing.assert_allclose(S[i], Ainv[i * s : (i + 1) * s, i * s : (i + 1) * s], atol=1e-10)
-    assert float(bt.logdet(chol)) == pytest.approx(np.linalg.slogdet(A)[1], rel=1e-12)
+    assert float(bt.logdet(chol)) == pytest.approx(np.linalg.slogdet(A)[1], rel=1e-11)
     ch2, y = bt.factor_forward(jnp.asarray(D), jnp.asarray(E), jnp.asarray(b))
     np.testing.assert_allclose(np.asarray(bt.back_substitute(ch2, y)).ravel(), x, rtol=1e-10)
 
@@ -226,8 +226,11 @@ def test_chosen_q_gives_the_fixed_q_result_even_with_a_slow_camera():
         )
         # a slow camera: the depth along the rays is the prior's, not the data's
         assert int(chosen.status[i]) == int(fixed.status) == jt.Status.DEGENERATE
-        np.testing.assert_allclose(chosen.points[i], fixed.points, atol=1e-6)
-        assert float(chosen.rms_px[i]) == pytest.approx(float(fixed.rms_px), rel=1e-3)
+        # 0.1 mm: the depth is the ill-conditioned prior's, so rounding differs by jax
+        # version (up to 0.1 mm and 0.007 px between the batched and the single solve on
+        # jax 0.10.2); the bug this guards against put estimates pixels off, or NaN
+        np.testing.assert_allclose(chosen.points[i], fixed.points, atol=1e-4)
+        assert float(chosen.rms_px[i]) == pytest.approx(float(fixed.rms_px), abs=0.02)
 
 
 def test_missing_frames_and_robust_loss(rng):

@@ -29,6 +29,8 @@ and differentiable with respect to the cameras.
 
 from __future__ import annotations
 
+import functools
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -63,10 +65,19 @@ def smoother_error_terms(
         ``(bias2, noise_var, q)``: ``|E x_hat_i - x_i|^2`` and ``tr Cov x_hat_i`` (F,) of
         the linearised smoother, and the density used (physical units).
     """
+    if order not in (1, 2, 3):
+        raise ValueError(f"order: expected 1, 2 or 3, got {order!r}")
     P = jnp.asarray(P)
     dtype = P.dtype
-    x = jnp.asarray(x, dtype)
-    times = jnp.asarray(times, dtype)
+    psd = None if process_psd is None else jnp.asarray(process_psd, dtype)
+    return _terms(P, jnp.asarray(x, dtype), jnp.asarray(times, dtype), pixel_sigma, order, psd)
+
+
+@functools.partial(jax.jit, static_argnames=("order",))
+def _terms(P, x, times, pixel_sigma, order, process_psd):
+    """The traceable body of :func:`smoother_error_terms` (one compiled program when
+    called on its own; inlined under an outer jit)."""
+    dtype = P.dtype
     F = x.shape[0]
     s = 3 * order
     Pn = normalise_cameras(P)
@@ -89,7 +100,7 @@ def smoother_error_terms(
         crit = jax.vmap(expected_neg2_log_evidence)(jax.lax.stop_gradient(grid))
         q = jax.lax.stop_gradient(_argmin_log(grid, jax.lax.stop_gradient(crit)))
     else:
-        q = jnp.asarray(process_psd, dtype) * qscale
+        q = process_psd * qscale
 
     D, E, b = _assemble(H, g, A, Qinv, 1 / q, order)
     chol = bt.factor(D, E)
@@ -128,8 +139,13 @@ def expected_smoother_errors_for_cameras(
     if t is not None and (t.shape != (P.shape[0],) or np.any(np.diff(t) <= 0)):
         raise ValueError(f"times: expected {P.shape[0]} strictly increasing times")
 
+    return _expected(P, samples, jnp.asarray(times, P.dtype), pixel_sigma, order)
+
+
+@functools.partial(jax.jit, static_argnames=("order",))
+def _expected(P, samples, times, pixel_sigma, order):
     def one(x):
-        bias2, var, _ = smoother_error_terms(P, x, times, pixel_sigma, order)
+        bias2, var, _ = _terms(P, x, times, pixel_sigma, order, None)
         return bias2 + var
 
     return _metrics(jax.vmap(one)(samples))

@@ -28,6 +28,7 @@ import jax.numpy as jnp
 import jaxlie
 from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
+from .._linalg import cholesky_small, solve_triangular_small
 from .events import IMU, POSE, EventStream
 from .imu import (
     ImuNoise,
@@ -358,6 +359,9 @@ def nees(result: FusionResult, truth: NominalState) -> Float[Array, " E"]:
 
     def one(x_est, x_true, P):
         e = boxminus(x_true, x_est)
-        return e @ jnp.linalg.solve(P, e)
+        # by a written-out Cholesky factor: vmapped over events, jnp.linalg.solve would be
+        # a batched LAPACK call (deadlocked on 2 cores with jaxlib 0.10, see jaxtraj._spd)
+        y = solve_triangular_small(cholesky_small(0.5 * (P + P.T)), e)
+        return y @ y
 
     return jax.vmap(one)(result.x, truth, result.P)
