@@ -88,6 +88,10 @@ def example_cell(frames: int = 60, duration: float = 10.0, starts: int = 8) -> C
     )
 
 
+#: the ``kappa`` bound of a design for the per-point estimator: estimate_points' default
+MAX_DEPTH_UNCERTAINTY = 0.08
+
+
 def estimator_name(spec: CellSpec) -> str:
     """The ``estimator`` argument of :func:`design_joint_path` for a cell's estimator."""
     return "dct" if spec.method == "dct" else f"smoother{spec.order}"
@@ -156,6 +160,9 @@ def design_cell(spec: CellSpec, *, inner_steps: int = 500) -> dict:
         end_offset=np.zeros(3) if spec.end_offset is None else spec.end_offset,
         end_tolerance=spec.end_tolerance,
         use_end=spec.end_offset is not None,
+        # designed for estimate_points: its tracks must come out with depth determined
+        max_depth_uncertainty=None if spec.method == "dct" else MAX_DEPTH_UNCERTAINTY,
+        depth_order=spec.order,
     )
     model = JointPathModel.create(spec.times, q0, n_control=spec.n_control)
     key = jax.random.PRNGKey(spec.seed)

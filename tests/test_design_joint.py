@@ -2,12 +2,14 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from jaxtraj import dct_basis, look_at
+from jaxtraj import dct_basis, depth_uncertainty, look_at
 from jaxtraj.design import plausible_trajectories
 from jaxtraj.design.bspline import bspline_basis, clamped_knots
 from jaxtraj.design.joint_optimise import design_joint_path, evaluate_joint_path
@@ -124,6 +126,12 @@ def test_constraint_values_against_direct_computation(scene, rng):
     angle = np.arctan2(np.linalg.norm(x_c[:, :2], axis=1), x_c[:, 2])
     np.testing.assert_allclose(values["field_of_view"][: len(d)], angle / 0.28 - 1, atol=1e-12)
     assert values["end"][0] == -1.0  # no end constraint unless asked
+    assert values["depth_determined"][0] == -1.0  # nor a depth bound
+    # with a depth bound (a design for estimate_points): kappa of each plausible trajectory
+    bounded = dataclasses.replace(cell, max_depth_uncertainty=0.08)
+    values = joint_constraint_values(model, theta, bounded, scene["predicted"], scene["samples"])
+    kappa = [float(depth_uncertainty(x, T[:, :3, 3], scene["times"], 2)) for x in scene["samples"]]
+    np.testing.assert_allclose(values["depth_determined"], np.array(kappa) / 0.08 - 1, rtol=1e-9)
 
 
 def test_design_converges_and_holds_on_a_10x_finer_grid(scene, rng):

@@ -26,7 +26,12 @@ Constraints (normalised, feasible where ``g <= 0``; ``0.1`` means 10 % past the 
 * ``floor`` - every joint frame, the flange and the camera at least ``floor_clearance``
   above the floor plane ``z = floor_z`` (grid);
 * ``end`` - optional: camera centre at the end time within ``end_tolerance`` of
-  ``predicted[-1] + end_offset`` (the approach position for the assembly).
+  ``predicted[-1] + end_offset`` (the approach position for the assembly);
+* ``depth_determined`` - optional (``max_depth_uncertainty``): every plausible workpiece
+  trajectory's relative depth uncertainty ``kappa`` (:func:`jaxtraj.depth_uncertainty`,
+  prior order ``depth_order``) at most that bound at the images, so that
+  :func:`jaxtraj.estimate_points`, which flags tracks above its ``max_depth_uncertainty``
+  (0.08) as not determined by the data, reports the designed path's tracks ``OK``.
 """
 
 from __future__ import annotations
@@ -38,6 +43,7 @@ import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
 from .._checks import check_shape
+from ..estimators._depth import depth_uncertainty
 from ..robot.chain import KinematicChain
 from ..robot.kinematics import joint_frames
 from .bspline import bspline_basis, clamped_knots
@@ -55,6 +61,7 @@ JOINT_CONSTRAINTS = (
     "keep_out",
     "floor",
     "end",
+    "depth_determined",
 )
 
 N_PINNED = 3  # control points pinned at q0: start at q0, at rest, zero acceleration
@@ -74,6 +81,8 @@ class RobotCell(eqx.Module):
         floor_z, floor_clearance: the floor plane's height and the clearance kept [m].
         end_offset: (3,) camera end position relative to the last prediction [m];
             end_tolerance [m]; use_end: whether the end constraint applies (static).
+        max_depth_uncertainty: bound on ``kappa`` of the plausible trajectories (static;
+            None: no such constraint); depth_order: the prior order of that ``kappa``.
     """
 
     chain: KinematicChain
@@ -89,6 +98,8 @@ class RobotCell(eqx.Module):
     end_offset: Float[Array, " 3"] = eqx.field(converter=jnp.asarray, default=(0.0, 0.0, 0.6))
     end_tolerance: Float[ArrayLike, ""] = 0.05
     use_end: bool = eqx.field(static=True, default=False)
+    max_depth_uncertainty: float | None = eqx.field(static=True, default=None)
+    depth_order: int = eqx.field(static=True, default=2)
 
 
 class JointPathModel(eqx.Module):
@@ -241,4 +252,11 @@ def joint_constraint_values(
     else:
         end = -jnp.ones((), dtype)
     values["end"] = jnp.reshape(end, (1,))
+    if cell.max_depth_uncertainty is not None:
+        kappa = jax.vmap(lambda x: depth_uncertainty(x, c, model.times, cell.depth_order))(
+            jnp.asarray(samples, dtype)
+        )
+        values["depth_determined"] = kappa / cell.max_depth_uncertainty - 1.0
+    else:
+        values["depth_determined"] = -jnp.ones(1, dtype)
     return {name: jnp.ravel(values[name]) for name in JOINT_CONSTRAINTS}
