@@ -12,7 +12,7 @@ from __future__ import annotations
 import jax.numpy as jnp
 from jaxtyping import Array, Float
 
-__all__ = ["cholesky_small", "det3", "solve_triangular_small"]
+__all__ = ["cholesky_small", "det3", "solve_spd_small", "solve_triangular_small"]
 
 
 def cholesky_small(A: Float[Array, "s s"]) -> Float[Array, "s s"]:
@@ -37,6 +37,12 @@ def solve_triangular_small(C: Float[Array, "s s"], B: Array, *, trans: int = 0) 
     for i in range(s) if trans == 0 else range(s - 1, -1, -1):
         x = x.at[i].set((B[i] - M[i] @ x) / M[i, i])  # unknown rows of x are still zero
     return x
+
+
+def solve_spd_small(A: Float[Array, "s s"], B: Array) -> Array:
+    """``A^-1 B`` for a small symmetric positive definite ``A`` by its Cholesky factor."""
+    L = cholesky_small(A)
+    return solve_triangular_small(L, solve_triangular_small(L, B), trans=1)
 
 
 def det3(M: Float[Array, "*b 3 3"]) -> Float[Array, " *b"]:

@@ -53,7 +53,7 @@ import numpy as np
 from jaxtyping import ArrayLike, Float
 
 from .._checks import check_shape
-from .._linalg import cholesky_small, solve_triangular_small
+from .._linalg import cholesky_small, solve_spd_small
 from ..solve import Status
 from ._common import as_float, check_positive, linearise, normalise_cameras, validate_track
 from .smoothness import Smoothed, _q_unit, _transition, _validate_batch, _validate_start
@@ -84,14 +84,6 @@ def _inv2(S):
     """Inverse of a 2x2 matrix in closed form."""
     det = S[0, 0] * S[1, 1] - S[0, 1] * S[1, 0]
     return jnp.array([[S[1, 1], -S[0, 1]], [-S[1, 0], S[0, 0]]], S.dtype) / det
-
-
-def _spd_solve(A, B):
-    """``A^-1 B`` for a small SPD ``A`` by its Cholesky factor, without LAPACK: under vmap
-    over points a LAPACK call becomes a batched one (deadlocked on 2 cores with jaxlib
-    0.10, see :mod:`jaxtraj._spd`)."""
-    L = cholesky_small(A)
-    return solve_triangular_small(L, solve_triangular_small(L, B), trans=1)
 
 
 def _project(P, X):
@@ -158,7 +150,9 @@ def kalman_smoother(moments, frames, z, w, A, Q, m0, C0, sigma2, gate, smoother)
     def back(carry, inputs):
         m_next, C_next = carry
         m, C, m_pred_next, C_pred_next, A_next = inputs
-        G = _spd_solve(C_pred_next, A_next @ C).T  # C A^T C_pred^-1
+        # C A^T C_pred^-1, without LAPACK: under vmap over points a LAPACK solve becomes a
+        # batched call (deadlocked on 2 cores with jaxlib 0.10, see jaxtraj._spd)
+        G = solve_spd_small(C_pred_next, A_next @ C).T
         m_s = m + G @ (m_next - m_pred_next)
         C_s = _symmetric(C + G @ (C_next - C_pred_next) @ G.T)
         return (m_s, C_s), (m_s, C_s)

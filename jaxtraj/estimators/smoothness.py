@@ -44,7 +44,7 @@ import numpy as np
 from jaxtyping import Array, ArrayLike, Float, Int
 
 from .._checks import check_shape, check_tracks, is_concrete
-from .._linalg import cholesky_small, solve_triangular_small
+from .._linalg import solve_spd_small
 from ..solve import Status
 from . import _blocktri as bt
 from ._common import (
@@ -410,10 +410,7 @@ def _smooth(
     start = None
     if start_mean is not None:  # in the solver's time unit tau
         cov_tau = start_cov / (unit[:, None] * unit[None, :])
-        L0 = cholesky_small(cov_tau)  # no LAPACK call (see jaxtraj._spd)
-        info = solve_triangular_small(
-            L0, solve_triangular_small(L0, jnp.eye(3 * order, dtype=dtype)), trans=1
-        )
+        info = solve_spd_small(cov_tau, jnp.eye(3 * order, dtype=dtype))  # no LAPACK call
         start = (info, start_mean.reshape(-1) / unit)
 
     Qa, qa = algebraic_blocks(Pn, uv)
