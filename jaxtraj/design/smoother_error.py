@@ -36,6 +36,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
+from .._checks import is_concrete
 from ..estimators import _blocktri as bt
 from ..estimators._common import gauss_newton_blocks, normalise_cameras
 from ..estimators.smoothness import _argmin_log, _assemble, _transition, default_psd_grid
@@ -135,7 +136,7 @@ def expected_smoother_errors_for_cameras(
             f"samples: expected shape (S, {P.shape[0]}, 3) (one point per camera), got "
             f"{samples.shape}"
         )
-    t = np.asarray(times) if not isinstance(times, jax.core.Tracer) else None
+    t = np.asarray(times) if is_concrete(times) else None
     if t is not None and (t.shape != (P.shape[0],) or np.any(np.diff(t) <= 0)):
         raise ValueError(f"times: expected {P.shape[0]} strictly increasing times")
 
