@@ -584,12 +584,184 @@ def report(raw: dict, command: str, machine_start: str, machine_end: str) -> str
     return "\n".join(lines)
 
 
+def vs_kernel(cfg: Config, workdir: Path, chunks: tuple[int, ...], repeats: int, log) -> dict:
+    """``run_batch`` and the ``jaxtraj batch`` command against the in-memory kernel, in one
+    process on one dataset, with the time of each stage of a chunk (issue: batch
+    throughput within 1.5x of the kernel).
+
+    Per repeat, in turn: the public ``reconstruct_points`` on all N points at once and on
+    chunks of each size (inputs already on the device: the kernel alone), ``run_batch``
+    per chunk size (read, pad, solve, write, fsync, progress file), and the command
+    ``jaxtraj batch`` (in this process, so JAX start-up is not counted; its own rate
+    includes the first chunk's compilation only on its first call). Medians over repeats.
+    """
+    from jaxtraj import reconstruct_points
+    from jaxtraj.cli import main as cli_main
+    from jaxtraj.scale.chunked import NpyRows
+    from jaxtraj.solve import _reconstruct_points  # run_batch's kernel (padded rows allowed)
+
+    ds = workdir / "ds-vs-kernel"
+    log(f"vs-kernel: writing dataset N = {cfg.n}, F = {cfg.F}")
+    make_dataset(ds, cfg.n, cfg)
+    raw = np.load(ds / "tracks.npy")
+    finite = np.all(np.isfinite(raw), axis=-1)
+    uv = jnp.asarray(np.where(finite[..., None], raw, 0.0))
+    w = jnp.asarray(finite.astype(np.float64))
+    del raw
+    with np.load(ds / "cameras.npz") as z:
+        P, times = jnp.asarray(z["P"]), jnp.asarray(z["times"])
+    basis = dct_basis(times, cfg.k)
+    n = cfg.n
+
+    def kernel_all():
+        return block(reconstruct_points(P, uv, basis, w))
+
+    def kernel_chunks(c):
+        parts = [(uv[a : a + c], w[a : a + c]) for a in range(0, n - n % c, c)]
+
+        def run():
+            for u, ww in parts:
+                block(reconstruct_points(P, u, basis, ww))
+
+        return run, len(parts) * c
+
+    def batch_run(c):
+        return run_batch(ds, workdir / f"vk-{c}", k=cfg.k, chunk_size=c, restart=True).seconds
+
+    def cli_run(c):
+        t0 = time.perf_counter()
+        rc = cli_main(
+            ["batch", str(ds), str(workdir / f"cli-{c}"), "--k", str(cfg.k),
+             "--chunk-size", str(c), "--restart"]
+        )  # fmt: skip
+        if rc != 0:
+            raise RuntimeError(f"jaxtraj batch exited {rc}")
+        return time.perf_counter() - t0
+
+    t0 = time.perf_counter()
+    kernel_all()
+    first_all = time.perf_counter() - t0
+    timings = {"all": []}
+    runners = {}
+    for c in chunks:
+        runners[c] = kernel_chunks(c)
+        runners[c][0]()  # compile this shape
+        batch_run(c)  # warm: run_batch's program is the same kernel, compiled once
+        cli_run(c)
+        timings |= {("kernel", c): [], ("batch", c): [], ("cli", c): []}
+    for r in range(repeats):
+        t0 = time.perf_counter()
+        kernel_all()
+        timings["all"].append(n / (time.perf_counter() - t0))
+        for c in chunks:
+            run, m = runners[c]
+            t0 = time.perf_counter()
+            run()
+            timings[("kernel", c)].append(m / (time.perf_counter() - t0))
+            timings[("batch", c)].append(n / batch_run(c))
+            timings[("cli", c)].append(n / cli_run(c))
+        log(f"vs-kernel repeat {r + 1}/{repeats} done")
+
+    # Stage times of one serial pass (no overlap), per point, at the largest chunk size.
+    c = max(chunks)
+    tracks = NpyRows(ds / "tracks.npy")
+    stages = dict.fromkeys(("read", "mask and pad", "solve", "copy to host", "write", "fsync"), 0.0)
+    outs = {name: NpyRows(workdir / f"vk-{c}" / f"{name}.npy", "r+b")
+            for name in ("points", "coeffs", "rms_px", "gain", "status")}  # fmt: skip
+    try:
+        for a in range(0, n, c):
+            b = min(n, a + c)
+            t = [time.perf_counter()]
+            chunk = tracks.read(a, b)
+            t.append(time.perf_counter())
+            ok = np.all(np.isfinite(chunk), axis=-1)
+            chunk[~ok] = 0.0
+            if b - a < c:
+                chunk = np.concatenate([chunk, np.zeros((c - (b - a), cfg.F, 2))])
+                ok = np.concatenate([ok, np.zeros((c - (b - a), cfg.F), bool)])
+            t.append(time.perf_counter())
+            res = block(_reconstruct_points(P, chunk, basis, ok * 1.0, 20.0, 1, True, None))
+            t.append(time.perf_counter())
+            res = jax.device_get(res)
+            t.append(time.perf_counter())
+            for name, f in outs.items():
+                f.write(a, getattr(res, name)[: b - a])
+            t.append(time.perf_counter())
+            for f in outs.values():
+                f.flush()
+            t.append(time.perf_counter())
+            for key, t1, t2 in zip(stages, t[:-1], t[1:], strict=True):
+                stages[key] += t2 - t1
+    finally:
+        for f in (tracks, *outs.values()):
+            f.close()
+    med = {key: float(np.median(v)) for key, v in timings.items()}
+    return {
+        "n": n,
+        "F": cfg.F,
+        "k": cfg.k,
+        "chunks": list(chunks),
+        "repeats": repeats,
+        "first_all_s": first_all,
+        "rates": {str(key): v for key, v in med.items()},
+        "rates_all": {str(key): v for key, v in timings.items()},
+        "stage_chunk": c,
+        "stages_us": {key: v / n * 1e6 for key, v in stages.items()},
+    }
+
+
+def vs_kernel_report(raw: dict, command: str, machine_start: str, machine_end: str) -> str:
+    rates = raw["rates"]
+    best = max([rates["all"]] + [rates[str(("kernel", c))] for c in raw["chunks"]])
+    rows = [["kernel, all N points in one call", "-", f"{rates['all']:.0f}",
+             f"{1e6 / rates['all']:.1f}", f"{rates['all'] / best:.2f}"]]  # fmt: skip
+    for c in raw["chunks"]:
+        for key, label in (("kernel", "kernel, chunks in memory"), ("batch", "`run_batch`"),
+                           ("cli", "`jaxtraj batch` (in process)")):  # fmt: skip
+            v = rates[str((key, c))]
+            rows.append([label, c, f"{v:.0f}", f"{1e6 / v:.1f}", f"{v / best:.2f}"])
+    stage_rows = [[k, f"{v:.2f}"] for k, v in raw["stages_us"].items()]
+    return "\n".join(
+        [
+            "# Benchmark: `jaxtraj batch` against the in-memory kernel",
+            "",
+            f"Generated by `{command}` on {datetime.date.today().isoformat()}.",
+            "",
+            f"Machine at start: {machine_start}. Machine at end: {machine_end}.",
+            "",
+            f"One process, one device, float64; N = {raw['n']} points, F = {raw['F']}, "
+            f"k = {raw['k']}; dataset as in `bench_scale.py` (random camera path, 0.3 px, 5 % "
+            f"missing). Rates are medians of {raw['repeats']} repeats, taken in turn so that "
+            "load changes hit every row alike; compilation is excluded everywhere (first "
+            f"call of the whole-N kernel: {raw['first_all_s']:.1f} s). The kernel is the "
+            "public `reconstruct_points` with status on inputs already in memory; "
+            "`run_batch` reads the tracks from disk, pads the last chunk, solves, writes the "
+            "five output files, fsyncs them and records the chunk, with the next chunk's "
+            "solve dispatched before the previous chunk is written.",
+            "",
+            markdown_table(["path", "chunk", "points/s", "us/point", "vs best kernel"], rows),
+            "",
+            f"Stages of one serial pass (no overlap) at chunk {raw['stage_chunk']}, "
+            "microseconds per point:",
+            "",
+            markdown_table(["stage", "us/point"], stage_rows),
+            "",
+        ]
+    )
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true", help="tiny sizes: a smoke run")
     parser.add_argument("--out", type=Path, default=None, help="write the markdown report here")
     parser.add_argument("--workdir", type=Path, default=None, help="scratch folder (deleted)")
     parser.add_argument("--worker", default=None, help=argparse.SUPPRESS)
+    parser.add_argument(
+        "--vs-kernel",
+        action="store_true",
+        help="only run_batch and `jaxtraj batch` against the in-memory kernel (one process)",
+    )
+    parser.add_argument("--repeats", type=int, default=5, help="repeats of --vs-kernel")
     add_watchdog_option(parser)
     args = parser.parse_args(argv)
     if args.worker is not None:
@@ -604,10 +776,20 @@ def main(argv: list[str] | None = None) -> int:
     start = machine_info()
     workdir = Path(tempfile.mkdtemp(prefix="bench_scale-", dir=args.workdir))
     try:
-        raw = measure(QUICK if args.quick else FULL, workdir, log)
+        if args.vs_kernel:
+            base = QUICK if args.quick else FULL
+            cfg = dataclasses.replace(base, n=base.n if args.quick else 16384)
+            chunks = (256,) if args.quick else (512, 2048)
+            command += f" --vs-kernel --repeats {args.repeats}"
+            raw = vs_kernel(cfg, workdir, chunks, args.repeats, log)
+        else:
+            raw = measure(QUICK if args.quick else FULL, workdir, log)
     finally:
         shutil.rmtree(workdir, ignore_errors=True)
-    text = report(raw, command, start, machine_info())
+    if args.vs_kernel:
+        text = vs_kernel_report(raw, command, start, machine_info())
+    else:
+        text = report(raw, command, start, machine_info())
     print(text)
     if args.out is not None:
         args.out.parent.mkdir(parents=True, exist_ok=True)

@@ -271,7 +271,7 @@ def _batch(args: Namespace, progress) -> int:
         progress=progress,
         dtype=jnp.float32 if args.float32 else jnp.float64,
     )
-    rate = s.computed * args.chunk_size / s.seconds if s.seconds > 0 and s.computed else 0.0
+    rate = s.computed_points / s.seconds if s.seconds > 0 and s.computed else 0.0
     print(
         f"jaxtraj batch: {s.points} points in {s.chunks} chunks on {len(devices)} device(s); "
         f"{s.computed} computed now ({s.seconds:.1f} s incl. compilation, ~{rate:,.0f} points/s), "

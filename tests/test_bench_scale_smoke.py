@@ -93,3 +93,28 @@ def test_tiny_benchmark_agrees_across_devices_and_chunks(tmp_path):
     table = [ln for ln in text.splitlines() if ln.startswith("| 1 | 64 | float64 |")]
     assert len(table) == 1 and "| 200/200 |" in table[0]
     assert "## Peak memory of `run_batch` vs dataset size" in text
+
+
+def test_batch_against_the_kernel_section(tmp_path):
+    """bench_scale.py --vs-kernel: every path measured on the same data; the command's own
+    outputs equal the kernel's trajectories."""
+    cfg = dataclasses.replace(TINY, n=150)
+    raw = bench_scale.vs_kernel(cfg, tmp_path, (64,), 1, lambda msg: None)
+    assert set(raw["rates"]) == {"all", "('kernel', 64)", "('batch', 64)", "('cli', 64)"}
+    assert all(v > 0 for v in raw["rates"].values())
+    assert set(raw["stages_us"]) == {"read", "mask and pad", "solve", "copy to host", "write",
+                                     "fsync"}  # fmt: skip
+    # what `jaxtraj batch` wrote is what the kernel computes on the same tracks
+    from jaxtraj import dct_basis, reconstruct_points
+
+    tracks = np.load(tmp_path / "ds-vs-kernel" / "tracks.npy")
+    with np.load(tmp_path / "ds-vs-kernel" / "cameras.npz") as z:
+        P, times = z["P"], z["times"]
+    ok = np.all(np.isfinite(tracks), axis=-1)
+    ref = reconstruct_points(P, np.nan_to_num(tracks), dct_basis(times, 3), ok * 1.0)
+    for folder in ("cli-64", "vk-64"):
+        got = np.load(tmp_path / folder / "points.npy")
+        np.testing.assert_allclose(got, ref.points, rtol=0, atol=1e-12)
+    text = bench_scale.vs_kernel_report(raw, "bench (test)", "start", "end")
+    rows = [ln for ln in text.splitlines() if ln.startswith("| `jaxtraj batch`")]
+    assert len(rows) == 1 and "| 64 |" in rows[0]

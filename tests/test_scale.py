@@ -64,6 +64,7 @@ def test_chunked_equals_one_shot(dataset, tmp_path):
     ds, P, times, uv, w = dataset
     summary = run_batch(ds, tmp_path / "out", k=5, chunk_size=16)
     assert (summary.points, summary.chunks, summary.computed) == (70, 5, 5)
+    assert summary.computed_points == 70  # the padded rows of the last chunk do not count
     w = np.where(np.all(np.isfinite(uv), axis=-1), w, 0.0)
     ref = reconstruct_points(P, np.nan_to_num(uv), dct_basis(times, 5), w)
     got = _outputs(tmp_path / "out")
@@ -98,6 +99,7 @@ def test_interrupted_run_resumes_with_identical_output(dataset, tmp_path, monkey
     assert done == [0, 1, 2]
     last = run_batch(ds, tmp_path / "twice", k=5, chunk_size=16)
     assert (last.computed, last.skipped) == (2, 3)
+    assert last.computed_points == 16 + 6  # chunks 3 and 4 (the last one holds 6 points)
     for name in OUTPUTS:
         a = (tmp_path / "once" / f"{name}.npy").read_bytes()
         b = (tmp_path / "twice" / f"{name}.npy").read_bytes()

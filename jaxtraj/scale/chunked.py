@@ -18,11 +18,14 @@ Each chunk of ``chunk_size`` points is read with plain file reads (no memory map
 resident memory stays flat), padded to the fixed size (one compilation), solved with the
 batched kernel (sharded over the devices of ``mesh`` when given), and written into its
 rows of the output files, which are flushed to disk before the chunk is recorded as done
-in ``progress-P.json`` (written atomically). An interrupted run resumes from that file;
-a chunk that was written but not recorded is simply computed again, with identical
-results. With several processes (``jax.distributed.initialize``), process P of Q does
-the chunks ``i % Q == P`` and keeps its own progress file; all write disjoint rows of the
-same output files on a shared file system.
+in ``progress-P.json`` (written atomically). The next chunk is read and its solve
+dispatched (JAX runs it asynchronously) before the previous chunk's rows are written, so
+disk reads, writes and fsync overlap the compute. An interrupted run resumes from the
+progress file; a chunk that was computed or written but not recorded (at most the last
+two) is simply computed again, with identical results. With several processes
+(``jax.distributed.initialize``), process P of Q does the chunks ``i % Q == P`` and keeps
+its own progress file; all write disjoint rows of the same output files on a shared file
+system.
 """
 
 from __future__ import annotations
@@ -84,7 +87,8 @@ class NpyRows:
 @dataclass(frozen=True)
 class BatchSummary:
     """Outcome of :func:`run_batch`: points, chunks, chunks computed now / skipped (done
-    before), points per status code, and the wall time of the computed chunks [s]."""
+    before), points per status code, the wall time of the computed chunks [s] (the first
+    chunk's compilation included) and the number of points in the computed chunks."""
 
     points: int
     chunks: int
@@ -92,6 +96,7 @@ class BatchSummary:
     skipped: int
     status_counts: dict
     seconds: float
+    computed_points: int = 0
 
 
 def write_dataset(folder: str | Path, P, times, tracks, weights=None) -> Path:
@@ -261,27 +266,42 @@ def run_batch(
     if max_chunks is not None:
         todo = todo[:max_chunks]
     steps = todo if progress is None else progress(todo, "batch chunks", len(todo))
+
+    def load(i):
+        """Chunk i's pixels and weights, padded to the chunk size (one compiled shape)."""
+        a, b = i * chunk_size, min(n, (i + 1) * chunk_size)
+        raw = tracks.read(a, b)
+        finite = np.all(np.isfinite(raw), axis=-1)
+        raw[~finite] = 0.0
+        w = finite if weights is None else np.where(finite, weights.read(a, b), 0.0)
+        if b - a < chunk_size:
+            raw = np.concatenate([raw, np.zeros((chunk_size - (b - a), F, 2), raw.dtype)])
+            w = np.concatenate([w, np.zeros((chunk_size - (b - a), F), w.dtype)])
+        return raw.astype(dtype, copy=False), w.astype(dtype)
+
+    def store(i, res):
+        """Write chunk i's rows, flush them to disk, then record the chunk as done."""
+        a, b = i * chunk_size, min(n, (i + 1) * chunk_size)
+        res = jax.device_get(res)
+        for name in files:
+            files[name].write(a, getattr(res, name)[: b - a])
+        for f in files.values():
+            f.flush()
+        done.add(i)
+        _write_progress(prog_path, meta, done)
+
+    # JAX dispatches asynchronously: chunk i + 1 is read and its solve started before the
+    # rows of chunk i are written and flushed, so reading and writing overlap the compute.
     t0 = time.perf_counter()
+    pending = None
     try:
         for i in steps:
-            a, b = i * chunk_size, min(n, (i + 1) * chunk_size)
-            uv = np.zeros((chunk_size, F, 2), dtype)
-            w = np.zeros((chunk_size, F), dtype)
-            raw = tracks.read(a, b)
-            finite = np.all(np.isfinite(raw), axis=-1)
-            uv[: b - a] = np.where(finite[..., None], raw, 0.0)
-            w[: b - a] = finite if weights is None else np.where(finite, weights.read(a, b), 0.0)
-            res = jax.device_get(solve(uv, w))
-            m = b - a
-            files["points"].write(a, res.points[:m])
-            files["coeffs"].write(a, res.coeffs[:m])
-            files["rms_px"].write(a, res.rms_px[:m])
-            files["gain"].write(a, res.gain[:m])
-            files["status"].write(a, res.status[:m])
-            for f in files.values():
-                f.flush()
-            done.add(i)
-            _write_progress(prog_path, meta, done)
+            result = (i, solve(*load(i)))
+            if pending is not None:
+                store(*pending)
+            pending = result
+        if pending is not None:
+            store(*pending)
     finally:
         for f in (*files.values(), tracks, *(() if weights is None else (weights,))):
             f.close()
@@ -299,4 +319,5 @@ def run_batch(
         skipped=len(set(chunks) & done_before),
         status_counts={int(v): int(c) for v, c in zip(values, counts, strict=True)},
         seconds=seconds,
+        computed_points=sum(min(n, (i + 1) * chunk_size) - i * chunk_size for i in todo),
     )
