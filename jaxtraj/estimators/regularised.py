@@ -164,7 +164,11 @@ def reconstruct_regularised(
 
 @functools.partial(jax.jit, static_argnames=("healthy_gain", "shared"))
 def _regularised_points(P, uv, Phi, w, rough, grid, held, healthy_gain, shared):
-    choice = jax.vmap(lambda u, ww: _cv(P, u, Phi, ww, rough, grid, held, healthy_gain))(uv, w)
+    # a loop over small groups of points: under one vmap every point's folds x grid
+    # systems (3k x 3k each) would be held at once (18 GB for 256 points at k = 60)
+    choice = jax.lax.map(
+        lambda a: _cv(P, a[0], Phi, a[1], rough, grid, held, healthy_gain), (uv, w), batch_size=4
+    )
     if shared:  # one weight for all points: the smallest mean criterion
         crit = jnp.mean(jnp.where(jnp.isfinite(choice.criterion), choice.criterion, 1e300), 0)
         lam = jnp.broadcast_to(grid[jnp.argmin(crit)], choice.lam.shape)

@@ -78,6 +78,10 @@ def _check(P, uv, times, weights, ks, folds=2):
     return tuple(int(k) for k in ks)
 
 
+#: points per step of the batched driver's loop (see :func:`jaxtraj.reconstruct_points`)
+_MAP_BATCH = 8
+
+
 def _prefix_solve(W, d, N, b, k):
     """Solve the leading ``3k x 3k`` block of ``N beta = b`` (the fit with the first k
     basis vectors) from the factor ``(W, d)`` of the whole N (:func:`jaxtraj.solve._factorise`).
@@ -255,7 +259,7 @@ def _select_k_points(P, uv, times, weights, ks, folds, max_gain, rule, healthy_g
             healthy_gain=healthy_gain,
         )
 
-    return jax.vmap(one)(uv, weights)
+    return jax.lax.map(lambda a: one(*a), (uv, weights), batch_size=_MAP_BATCH)
 
 
 def select_k_points(
