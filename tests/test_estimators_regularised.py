@@ -143,3 +143,16 @@ def test_batched_driver_equals_per_point_choice_and_solve():
     assert float(sc.lam[0]) == pytest.approx(best)
     ref = jt.reconstruct(s.P, uv[1], Phi, penalty=sc.lam[1] * rough)
     np.testing.assert_allclose(res_shared.points[1], ref.points, atol=1e-10)
+    assert np.asarray(sc.tracks).tolist() == [0, 1]
+    # a shared weight cross-validated on a subset of the tracks (here the first): the
+    # noisy second track is solved with the clean track's weight
+    res_sub, _, s1 = reconstruct_regularised_points(
+        s.P, uv, s.times, k=6, grid=grid, folds=2, shared=True, cv_points=1
+    )
+    assert np.asarray(s1.tracks).tolist() == [0] and s1.criterion.shape == (1, 3)
+    assert float(s1.lam[0]) == float(choice.lam[0])
+    np.testing.assert_allclose(s1.criterion[0], choice.criterion[0], rtol=1e-9)
+    ref = jt.reconstruct(s.P, uv[1], Phi, penalty=choice.lam[0] * rough)
+    np.testing.assert_allclose(res_sub.points[1], ref.points, atol=1e-10)
+    with pytest.raises(ValueError, match="cv_points"):
+        reconstruct_regularised_points(s.P, uv, s.times, k=6, shared=True, cv_points=0)

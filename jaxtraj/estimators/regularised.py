@@ -23,7 +23,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jaxtyping import Array, ArrayLike, Float
+from jaxtyping import Array, ArrayLike, Float, Int
 
 from .._checks import check_finite, check_shape, check_tracks
 from ..basis import DCTBasis
@@ -56,13 +56,16 @@ def roughness_penalty(basis: DCTBasis, order: int = 2) -> Float[Array, " k"]:
 class PenaltyChoice(eqx.Module):
     """Cross-validation of the penalty weight: the chosen ``lam``, the grid, the mean
     held-out reprojection RMS [px], the conditioning gain on all frames and the
-    minimised criterion at each grid value."""
+    minimised criterion at each grid value. From the batched driver with a shared weight,
+    ``tracks`` holds the indices of the tracks that were cross-validated (None
+    otherwise)."""
 
     lam: Float[Array, ""]
     grid: Float[Array, " G"]
     cv_rms_px: Float[Array, " G"]
     gain: Float[Array, " G"]
     criterion: Float[Array, " G"]
+    tracks: Int[Array, " M"] | None = None
 
 
 def _fold_masks(num_frames: int, folds: int) -> np.ndarray:
@@ -162,20 +165,41 @@ def reconstruct_regularised(
     return flag_undetermined_depth(res, P, times, order), basis, choice
 
 
-@functools.partial(jax.jit, static_argnames=("healthy_gain", "shared"))
-def _regularised_points(P, uv, Phi, w, rough, grid, held, healthy_gain, shared):
-    # a loop over small groups of points: under one vmap every point's folds x grid
-    # systems (3k x 3k each) would be held at once (18 GB for 256 points at k = 60)
+@functools.partial(jax.jit, static_argnames=("healthy_gain", "cv_tracks"))
+def _regularised_points(P, uv, Phi, w, rough, grid, held, healthy_gain, cv_tracks):
+    # cv_tracks: None (a weight per point) or the indices of the tracks whose mean
+    # criterion chooses one shared weight. A loop over small groups of points: under one
+    # vmap every point's folds x grid systems (3k x 3k each) would be held at once (18 GB
+    # for 256 points at k = 60).
+    sel = slice(None) if cv_tracks is None else np.asarray(cv_tracks)
     choice = jax.lax.map(
-        lambda a: _cv(P, a[0], Phi, a[1], rough, grid, held, healthy_gain), (uv, w), batch_size=4
+        lambda a: _cv(P, a[0], Phi, a[1], rough, grid, held, healthy_gain),
+        (uv[sel], w[sel]),
+        batch_size=4,
     )
-    if shared:  # one weight for all points: the smallest mean criterion
+    if cv_tracks is None:
+        lam = choice.lam
+    else:  # one weight for all points: the smallest mean criterion
         crit = jnp.mean(jnp.where(jnp.isfinite(choice.criterion), choice.criterion, 1e300), 0)
-        lam = jnp.broadcast_to(grid[jnp.argmin(crit)], choice.lam.shape)
-        choice = eqx.tree_at(lambda c: c.lam, choice, lam)
-    pen = choice.lam[:, None] * rough[None, :]
+        lam = jnp.broadcast_to(grid[jnp.argmin(crit)], uv.shape[:1])
+        choice = PenaltyChoice(
+            lam=jnp.broadcast_to(lam[0], choice.lam.shape),
+            grid=choice.grid,
+            cv_rms_px=choice.cv_rms_px,
+            gain=choice.gain,
+            criterion=choice.criterion,
+            tracks=jnp.asarray(cv_tracks, jnp.int32),
+        )
+    pen = lam[:, None] * rough[None, :]
     max_gain = jnp.asarray(20.0, P.dtype)
     return _reconstruct_points(P, uv, Phi, w, max_gain, 1, True, pen), choice
+
+
+def _spread_tracks(n: int, m: int | None) -> tuple[int, ...]:
+    """Indices of ``min(m, n)`` tracks spread evenly over ``0..n-1`` (all for None)."""
+    if m is None or m >= n:
+        return tuple(range(n))
+    return tuple(int(i) for i in np.unique(np.round(np.linspace(0, n - 1, m)).astype(int)))
 
 
 def reconstruct_regularised_points(
@@ -188,6 +212,7 @@ def reconstruct_regularised_points(
     order: int = 2,
     lam: float | None = None,
     shared: bool = False,
+    cv_points: int | None = 16,
     grid: Float[ArrayLike, " G"] | None = None,
     folds: int = 5,
     rule: str = "gain_weighted",
@@ -198,13 +223,21 @@ def reconstruct_regularised_points(
 
     The penalty weight is chosen by cross-validation per point (``shared=False``), or once
     for all points (``shared=True``: the grid value with the smallest criterion averaged
-    over the points), unless ``lam`` is given. Returns the batched
-    :class:`~jaxtraj.Reconstruction` (leading axis N), the basis and the per-point
-    :class:`PenaltyChoice` (None if ``lam`` given; with ``shared`` every ``lam`` is the
-    shared one). Per point the choice costs ``folds * G`` penalised solves of the
-    ``3k x 3k`` system and ``G`` gain bounds (G = 15 grid values by default), each about
-    ``(3k)^3`` multiply-adds for its factorisation: this, not the assembly, dominates for
-    the default k = min(F, 60).
+    over ``cv_points`` tracks spread evenly over the batch, all of them if fewer or with
+    ``cv_points=None``), unless ``lam`` is given. Returns the batched
+    :class:`~jaxtraj.Reconstruction` (leading axis N), the basis and the
+    :class:`PenaltyChoice` of each cross-validated track (None if ``lam`` given; with
+    ``shared`` every ``lam`` is the shared one and ``tracks`` says which tracks were
+    cross-validated).
+
+    Cost: per cross-validated track ``folds * G`` penalised solves of the ``3k x 3k``
+    system and ``G`` gain bounds (G = 15 grid values by default), each about ``(3k)^3``
+    multiply-adds for its factorisation; this, not the assembly, dominates for the
+    default k = min(F, 60): about 170-200 ms per track at F = 150 on a 2-core CPU. A
+    shared weight pays it for ``cv_points`` tracks only, then one solve per point
+    (README: per-point cost of the batched drivers). A shared weight suits points of one
+    rigid workpiece (the same motion, the same cameras and noise); points that move
+    differently want their own.
     """
     if np.ndim(uv) != 3:
         raise ValueError(f"uv: expected shape (N, F, 2), got {np.shape(uv)}")
@@ -235,5 +268,10 @@ def reconstruct_regularised_points(
     check_shape("grid", grid, (None,), "(G,) penalty weights")
     held = jnp.asarray(_fold_masks(F, folds))
     healthy = float(healthy_gain) if rule == "gain_weighted" else None
-    res, choice = _regularised_points(P, uv, Phi, w, rough, grid, held, healthy, bool(shared))
+    if cv_points is not None and (
+        isinstance(cv_points, bool) or not isinstance(cv_points, (int, np.integer)) or cv_points < 1
+    ):
+        raise ValueError(f"cv_points: expected a positive int or None, got {cv_points!r}")
+    tracks = _spread_tracks(np.shape(uv)[0], cv_points) if shared else None
+    res, choice = _regularised_points(P, uv, Phi, w, rough, grid, held, healthy, tracks)
     return flag_undetermined_depth(res, P, times, order), basis, choice
