@@ -60,31 +60,47 @@ def _unrolled(A, ref):
     return W
 
 
+def _looped(A, ref):
+    """:func:`_unrolled` as a ``fori_loop`` over the rows, each step on the whole (masked)
+    matrix: about 2x slower than unrolled at 30-48 rows but compiled in a tenth of the
+    time; the diagonal blocks of :func:`_blocked`, where it costs little."""
+    n = A.shape[-1]
+    eps = jnp.finfo(A.dtype).eps
+    idx = jnp.arange(n)
+
+    def step(i, W):
+        l = matvec(W, jnp.where(idx < i, A[:, i], 0.0))  # rows >= i of W are still zero
+        d = _pivot(A[i, i], jnp.sum(l * l), eps, ref[i])
+        row = jnp.where(idx == i, 1.0 / d, -vecmat(l, W) / d)
+        return jax.lax.dynamic_update_slice(W, row[None, :], (i, 0))
+
+    return jax.lax.fori_loop(0, n, step, jnp.zeros_like(A))
+
+
 def _blocked(A):
-    """Block bordering, ``b <= UNROLL_MAX`` rows at a time in a ``fori_loop``: with ``W`` the
-    inverse factor of the leading ``s x s`` block, the next rows of ``L`` are
-    ``L21 = A21 W^T``, the block's own factor comes from the Schur complement
-    ``A22 - L21 L21^T`` (unrolled), and its rows of ``W`` are ``[-W22 L21 W, W22]``. The
-    matrix is padded with an identity block to a multiple of ``b``."""
+    """Block bordering, ``b <= UNROLL_MAX`` rows at a time (the blocks unrolled, static
+    slices): with ``W`` the inverse factor of the leading ``s x s`` block, the next rows of
+    ``L`` are ``L21 = A21 W^T``, the block's own factor comes from the Schur complement
+    ``A22 - L21 L21^T`` (:func:`_looped`), and its rows of ``W`` are
+    ``[-W22 L21 W, W22]``. About ``2 n^3 / 3`` multiply-adds, in matrix products. Measured
+    against a ``fori_loop`` over full-width masked blocks (``2 n^3``), 64 matrices: 60 rows
+    0.118 -> 0.069 ms each, compiled in 0.6 s instead of 3.0 s; 180 rows 1.63 -> 1.02 ms,
+    2.0 s instead of 6.3 s."""
     n = A.shape[-1]
     blocks = -(-n // UNROLL_MAX)
     b = -(-n // blocks)
-    m = blocks * b
-    Ap = jnp.eye(m, dtype=A.dtype).at[:n, :n].set(A)
-    idx = jnp.arange(m)
-
-    def step(j, W):
-        s = j * b
-        rows = jax.lax.dynamic_slice(Ap, (s, 0), (b, m))
-        L21 = jnp.where(idx[None, :] < s, rows, 0.0) @ W.T  # zero in columns >= s
-        A22 = jax.lax.dynamic_slice(Ap, (s, s), (b, b))
-        W22 = _unrolled(A22 - L21 @ L21.T, jnp.diagonal(A22))
-        block = -(W22 @ L21) @ W + jax.lax.dynamic_update_slice(
-            jnp.zeros((b, m), A.dtype), W22, (0, s)
-        )
-        return jax.lax.dynamic_update_slice(W, block, (s, 0))
-
-    return jax.lax.fori_loop(0, blocks, step, jnp.zeros_like(Ap))[:n, :n]
+    W = jnp.zeros_like(A)
+    for s in range(0, n, b):
+        e = min(s + b, n)
+        A22 = A[s:e, s:e]
+        if s == 0:
+            W = W.at[:e, :e].set(_looped(A22, jnp.diagonal(A22)))
+            continue
+        W11 = W[:s, :s]
+        L21 = A[s:e, :s] @ W11.T
+        W22 = _looped(A22 - L21 @ L21.T, jnp.diagonal(A22))
+        W = W.at[s:e, :s].set(-(W22 @ L21) @ W11).at[s:e, s:e].set(W22)
+    return W
 
 
 def inverse_cholesky(A: Float[Array, "n n"]) -> Float[Array, "n n"]:
@@ -96,7 +112,7 @@ def inverse_cholesky(A: Float[Array, "n n"]) -> Float[Array, "n n"]:
     Pivots below ``eps * A_ii`` are clamped there (singular input: huge, finite ``W``).
     Up to :data:`UNROLL_MAX` rows the steps are unrolled (about ``2 n^3 / 3``
     multiply-adds); larger matrices go by blocks of rows (matrix products, about
-    ``2 n^3``, in a few loop steps). Differentiable.
+    ``2 n^3 / 3`` too, see :func:`_blocked`). Differentiable.
     """
     if A.shape[-1] <= UNROLL_MAX:
         return _unrolled(A, jnp.diagonal(A))
