@@ -94,7 +94,7 @@ ORDERS = (1, 2, 3)
 MIN_OBSERVED = 3  # frames with a detection per track (raised outside jit)
 DCT_KS = (4, 6, 9, 12)  # candidate DCT sizes (module notes)
 START_SD = (1.0, 1.0, 10.0)  # start prior of the evidence: m, m/s, m/s^2 (module notes)
-MAP_BATCH = 8  # points per group of the batched driver (0: one vmap over all points)
+MAP_BATCH = 8  # points per group of the batched driver (lax.map)
 
 
 class PointEstimate(eqx.Module):
@@ -274,17 +274,15 @@ def _estimate_one(P, C, uv, times, w, orders, dct_ks, tau, opts):
 
 
 @eqx.filter_jit
-def _estimate(P, uv, times, weights, orders, dct_ks, tau, opts, batch):
+def _estimate(P, uv, times, weights, orders, dct_ks, tau, opts):
     C = camera_centres(P)
 
     def one(args):
         return _estimate_one(P, C, args[0], times, args[1], orders, dct_ks, tau, opts)
 
-    if batch == 0:
-        return jax.vmap(one)((uv, weights))
-    # groups of ``batch`` points (lax.map): one vmap over thousands of points makes every
+    # groups of MAP_BATCH points (lax.map): one vmap over thousands of points makes every
     # step of the smoothers stream all points' arrays through memory
-    return jax.lax.map(one, (uv, weights), batch_size=batch)
+    return jax.lax.map(one, (uv, weights), batch_size=MAP_BATCH)
 
 
 def estimate_points(
@@ -372,5 +370,5 @@ def estimate_points(
         criterion="ml",
     )
     return _estimate(
-        P, uv, times, w, orders, dct_ks, jnp.asarray(max_depth_uncertainty, dtype), opts, MAP_BATCH
+        P, uv, times, w, orders, dct_ks, jnp.asarray(max_depth_uncertainty, dtype), opts
     )

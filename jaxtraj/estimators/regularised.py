@@ -181,9 +181,10 @@ def _regularised_points(P, uv, Phi, w, rough, grid, held, healthy_gain, cv_track
         lam = choice.lam
     else:  # one weight for all points: the smallest mean criterion
         crit = jnp.mean(jnp.where(jnp.isfinite(choice.criterion), choice.criterion, 1e300), 0)
-        lam = jnp.broadcast_to(grid[jnp.argmin(crit)], uv.shape[:1])
+        best = grid[jnp.argmin(crit)]
+        lam = jnp.broadcast_to(best, uv.shape[:1])
         choice = PenaltyChoice(
-            lam=jnp.broadcast_to(lam[0], choice.lam.shape),
+            lam=jnp.broadcast_to(best, choice.lam.shape),
             grid=choice.grid,
             cv_rms_px=choice.cv_rms_px,
             gain=choice.gain,
@@ -251,6 +252,10 @@ def reconstruct_regularised_points(
     check_tracks(uv, weights)
     if folds < 2:
         raise ValueError(f"folds: expected >= 2, got {folds}")
+    if cv_points is not None and (
+        isinstance(cv_points, bool) or not isinstance(cv_points, (int, np.integer)) or cv_points < 1
+    ):
+        raise ValueError(f"cv_points: expected a positive int or None, got {cv_points!r}")
     check_rule(rule, healthy_gain)
     k = min(F, 60) if k is None else k
     dtype = jnp.result_type(jnp.asarray(P).dtype, jnp.float32)
@@ -268,10 +273,6 @@ def reconstruct_regularised_points(
     check_shape("grid", grid, (None,), "(G,) penalty weights")
     held = jnp.asarray(_fold_masks(F, folds))
     healthy = float(healthy_gain) if rule == "gain_weighted" else None
-    if cv_points is not None and (
-        isinstance(cv_points, bool) or not isinstance(cv_points, (int, np.integer)) or cv_points < 1
-    ):
-        raise ValueError(f"cv_points: expected a positive int or None, got {cv_points!r}")
     tracks = _spread_tracks(np.shape(uv)[0], cv_points) if shared else None
     res, choice = _regularised_points(P, uv, Phi, w, rough, grid, held, healthy, tracks)
     return flag_undetermined_depth(res, P, times, order), basis, choice
