@@ -15,6 +15,8 @@ __all__ = [
     "EXIT_FAILED",
     "EXIT_OK",
     "EXIT_USAGE",
+    "SIMULATE_DURATION",
+    "SIMULATE_FRAMES",
     "TARGET_ORIENTATION_DEG",
     "TARGET_POSITION_MM",
     "UsageError",
@@ -24,6 +26,9 @@ EXIT_OK, EXIT_FAILED, EXIT_USAGE = 0, 1, 2
 
 #: Accuracy the simulated cell must reach (issue "pipeline"): assembly point, orientation.
 TARGET_POSITION_MM, TARGET_ORIENTATION_DEG = 1.0, 0.1
+
+#: ``jaxtraj simulate``'s defaults: images (as in the paper) and recording length [s].
+SIMULATE_FRAMES, SIMULATE_DURATION = 150, 10.0
 
 
 class UsageError(Exception):

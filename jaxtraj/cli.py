@@ -26,6 +26,7 @@ from pathlib import Path
 from ._cli_common import EXIT_FAILED as EXIT_FAILED
 from ._cli_common import EXIT_OK as EXIT_OK
 from ._cli_common import EXIT_USAGE as EXIT_USAGE
+from ._cli_common import SIMULATE_DURATION, SIMULATE_FRAMES
 from ._cli_common import TARGET_ORIENTATION_DEG as TARGET_ORIENTATION_DEG
 from ._cli_common import TARGET_POSITION_MM as TARGET_POSITION_MM
 from ._cli_common import UsageError as UsageError
@@ -80,15 +81,22 @@ def _add_reconstruct_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--k", type=_positive_int, default=20, help="DCT vectors (default 20)")
 
 
-def _add_simulate_options(p: argparse.ArgumentParser, frames_default: int = 150) -> None:
+def _add_simulate_options(
+    p: argparse.ArgumentParser, frames_default: int = SIMULATE_FRAMES, resolved_later: bool = False
+) -> None:
+    """``--frames``, ``--duration``, ``--seed``; ``resolved_later``: frames and duration
+    default to None (the command fills in the defaults or takes them from elsewhere)."""
     p.add_argument(
         "--frames",
         type=_positive_int,
-        default=frames_default,
+        default=None if resolved_later else frames_default,
         help=f"number of images (default {frames_default}, as in the paper)",
     )
     p.add_argument(
-        "--duration", type=_positive_float, default=10.0, help="recording length [s] (default 10)"
+        "--duration",
+        type=_positive_float,
+        default=None if resolved_later else SIMULATE_DURATION,
+        help=f"recording length [s] (default {SIMULATE_DURATION:g})",
     )
     p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
 
@@ -113,7 +121,22 @@ def build_parser() -> argparse.ArgumentParser:
         "(format: jaxtraj.io.recording) with the ground truth in truth/.",
     )
     sim.add_argument("out", type=Path, help="the recording folder to write (replaced if present)")
-    _add_simulate_options(sim)
+    _add_simulate_options(sim, resolved_later=True)
+    sim.add_argument(
+        "--camera-path",
+        type=Path,
+        default=None,
+        help="run the camera robot on this joint path (t, A1..A6 [s, deg]; jaxtraj design's "
+        "joint_path.csv) with the workpiece on the cell's predicted trajectory; images at "
+        "the path's times",
+    )
+    sim.add_argument(
+        "--cell",
+        type=Path,
+        default=None,
+        help="--camera-path: the cell (CELL.json or design.json; default: design.json beside "
+        "the path)",
+    )
     sim.add_argument(
         "--latency-known",
         action="store_true",

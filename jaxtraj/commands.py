@@ -8,7 +8,14 @@ from pathlib import Path
 
 import jax
 
-from ._cli_common import EXIT_FAILED, EXIT_OK, TARGET_ORIENTATION_DEG, TARGET_POSITION_MM
+from ._cli_common import (
+    EXIT_FAILED,
+    EXIT_OK,
+    SIMULATE_DURATION,
+    SIMULATE_FRAMES,
+    TARGET_ORIENTATION_DEG,
+    TARGET_POSITION_MM,
+)
 from .pipeline import steps
 
 
@@ -20,18 +27,25 @@ def _fmt(stats: dict, unit: str, digits: int = 2) -> str:
 
 
 def _simulate(args: Namespace, progress) -> int:
+    if args.camera_path is None and args.cell is not None:
+        raise ValueError("--cell: needs --camera-path (the joint path the cell is run with)")
+    if args.camera_path is not None and (args.frames is not None or args.duration is not None):
+        raise ValueError("--frames, --duration: set by --camera-path (its times), not given")
     folder = steps.step_simulate(
         args.out,
         seed=args.seed,
-        frames=args.frames,
-        duration=args.duration,
+        frames=SIMULATE_FRAMES if args.frames is None else args.frames,
+        duration=SIMULATE_DURATION if args.duration is None else args.duration,
         latency_known=args.latency_known,
         kuka=args.kuka,
         progress=progress,
+        camera_path=args.camera_path,
+        cell_file=args.cell,
     )
-    print(
-        f"jaxtraj simulate: wrote the recording {folder} ({args.frames} images, seed {args.seed})"
-    )
+    frames = len(list((Path(folder) / "images").glob("*.png")))
+    seed = args.seed
+    path = "" if args.camera_path is None else f", camera robot on {args.camera_path}"
+    print(f"jaxtraj simulate: wrote the recording {folder} ({frames} images, seed {seed}{path})")
     return EXIT_OK
 
 

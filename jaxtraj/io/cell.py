@@ -302,7 +302,8 @@ def cell_from_dict(data: dict, where: str = "CELL.json") -> CellSpec:
 
 
 def read_cell(path: str | Path) -> CellSpec:
-    """Read and check a CELL.json file (``ValueError`` naming file, line and key)."""
+    """Read and check a CELL.json file (``ValueError`` naming file, line and key); a
+    ``design.json`` written by ``jaxtraj design`` gives the cell it was designed for."""
     path = Path(path)
     if not path.is_file():
         raise ValueError(f"{path}: cell file not found")
@@ -310,4 +311,6 @@ def read_cell(path: str | Path) -> CellSpec:
         data = json.loads(path.read_text())
     except json.JSONDecodeError as err:
         raise ValueError(f"{path}, line {err.lineno}: malformed JSON ({err.msg})") from None
+    if isinstance(data, dict) and "cell" in data and "design_seconds" in data:  # design.json
+        return cell_from_dict(data["cell"], f"{path}: 'cell'")
     return cell_from_dict(data, str(path))

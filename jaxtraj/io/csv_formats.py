@@ -50,6 +50,7 @@ __all__ = [
     "read_detections",
     "read_image_index",
     "read_imu",
+    "read_joint_path",
     "read_points",
     "read_poses",
     "read_robot",
@@ -579,3 +580,11 @@ def read_points(path: str | Path) -> ReconstructedPoints:
     points[row, col] = P
     okm[row, col] = ok == 1
     return ReconstructedPoints(frames=frames, times=t[start], ids=ids, points=points, ok=okm)
+
+
+def read_joint_path(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
+    """Read a joint path CSV ``t,A1,...,A6`` (s, deg; ``jaxtraj design``'s
+    ``joint_path.csv``); returns times (N,) [s] and axis values (N, 6) [rad]."""
+    axes = [f"A{i}" for i in range(1, 7)]
+    tab = read_table(path, dict.fromkeys(["t", *axes], "float"), strictly_increasing="t")
+    return tab["t"], np.radians(np.stack([tab[a] for a in axes], 1))

@@ -66,12 +66,34 @@ def step_simulate(
     latency_known: bool = False,
     kuka: bool = False,
     progress: Progress | None = None,
+    camera_path: Path | None = None,
+    cell_file: Path | None = None,
 ) -> Path:
-    """Simulate a robot cell and write its recording folder with rendered images."""
+    """Simulate a robot cell and write its recording folder with rendered images.
+
+    With ``camera_path`` (a joint path CSV ``t,A1..A6``) the camera robot runs that path
+    and the workpiece follows the prediction of ``cell_file`` (CELL.json or a
+    ``design.json``; default: ``design.json`` beside the path); ``frames`` and ``duration``
+    then come from the path (:func:`jaxtraj.sim.designed.designed_cell`).
+    """
     from ..sim.cell import CellConfig, simulate_cell
     from ..sim.recording import write_simulated_recording
 
-    cell = simulate_cell(CellConfig(n_images=frames, duration=duration), seed=seed)
+    if camera_path is not None:
+        from ..io.cell import read_cell
+        from ..io.csv_formats import read_joint_path
+        from ..sim.designed import designed_cell
+
+        camera_path = Path(camera_path)
+        cell_file = camera_path.parent / "design.json" if cell_file is None else Path(cell_file)
+        spec = read_cell(cell_file)
+        t, q = read_joint_path(camera_path)
+        try:
+            cell = designed_cell(spec, t, q, seed=seed)
+        except ValueError as err:
+            raise ValueError(f"{camera_path}: {err}") from None
+    else:
+        cell = simulate_cell(CellConfig(n_images=frames, duration=duration), seed=seed)
     return write_simulated_recording(
         cell, out, seed=seed, robot_latency_known=latency_known, kuka=kuka, progress=progress
     )

@@ -146,7 +146,9 @@ def inverse_kinematics(
         q0: (n,) start and preferred configuration (default: mid-range).
         starts: starts in all (``q0`` plus ``starts - 1`` drawn with ``key``).
         key: PRNG key of the extra starts (default: ``PRNGKey(0)``, deterministic).
-        position_tol [m], rotation_tol [rad]: the pose counts as reached below these.
+        position_tol [m], rotation_tol [rad]: the pose counts as reached below these
+            (raised to 64 machine epsilons of the chain's dtype, times ``1 + |p|`` for
+            the position: 1e-9 cannot be met in float32, where they are ~2e-5 m, 8e-6 rad).
         max_steps: Levenberg-Marquardt steps per start.
 
     Returns:
@@ -159,6 +161,9 @@ def inverse_kinematics(
     key = jax.random.PRNGKey(0) if key is None else key
     q_starts = _starts(chain, q0, starts, key)
     qs, converged = _solve_starts(chain, T_target, q_starts, jnp.ones((), dtype), max_steps)
+    floor = 64 * jnp.finfo(dtype).eps
+    position_tol = jnp.maximum(position_tol, floor * (1 + jnp.linalg.norm(T_target[:3, 3])))
+    rotation_tol = jnp.maximum(rotation_tol, floor)
     return _select(chain, T_target, q0, qs, q_starts, converged, position_tol, rotation_tol)
 
 

@@ -206,29 +206,74 @@ def _pose_stream(times, T) -> PoseStream:
     return PoseStream(times, T[:, :3, 3], matrix_to_quat(T[:, :3, :3]))
 
 
-def simulate_cell(config: CellConfig | None = None, seed: int = 0) -> SimulatedCell:
+def _check_given_motion(config: CellConfig, times, camera, object_pose):
+    """Checks of :func:`simulate_cell`'s optional motions (host side, NumPy)."""
+    given = (times is not None, camera is not None, object_pose is not None)
+    if any(given) and not all(given):
+        raise ValueError("times, camera, object_pose: give all three or none")
+    if times is None:
+        return None, None
+    times = np.asarray(times, float)
+    if times.shape != (config.n_images,) or np.any(np.diff(times) <= 0):
+        raise ValueError(
+            f"times: expected {config.n_images} strictly increasing image times, got "
+            f"shape {times.shape}"
+        )
+    if times[0] < 0 or times[-1] > config.duration:
+        raise ValueError(
+            f"times: expected image times within [0, duration = {config.duration}] s, got "
+            f"{times[0]:.3f} .. {times[-1]:.3f}"
+        )
+    R, p = (np.asarray(a, float) for a in object_pose)
+    if R.shape != (times.size, 3, 3) or p.shape != (times.size, 3):
+        raise ValueError(
+            f"object_pose: expected rotations ({times.size}, 3, 3) and positions "
+            f"({times.size}, 3), got {R.shape}, {p.shape}"
+        )
+    return times, (R, p)
+
+
+def simulate_cell(
+    config: CellConfig | None = None,
+    seed: int = 0,
+    *,
+    times=None,
+    camera=None,
+    object_pose=None,
+) -> SimulatedCell:
     """Simulate the motions and sensor streams of a robot cell (float64, NumPy out).
 
     Args:
         config: the cell; default :class:`CellConfig()`.
         seed: random seed (workpiece path, camera sweep, image times, sensor noise).
+        times, camera, object_pose: a given scenario instead of the random one (all three
+            or none): (n_images,) image times within ``[0, duration]``; the camera as a
+            JAX callable ``t -> (p_w_c (3,), q_w_c (4,) wxyz)`` defined (and twice
+            differentiable) from 0.5 s before 0 to 0.5 s after ``duration``, e.g.
+            :func:`jaxtraj.sim.joint_camera.joint_path_camera`; the workpiece pose
+            ``(R_w_o (F, 3, 3), p_w_o (F, 3))`` at the image times.
 
     Returns:
         a :class:`SimulatedCell`; images are rendered later from its poses.
     """
     config = CellConfig() if config is None else config
+    given_times, given_object = _check_given_motion(config, times, camera, object_pose)
     with _x64():
         key = jax.random.PRNGKey(seed)
         k_t, k_obj, k_cam, k_rec = jax.random.split(key, 4)
-        times = sample_times(k_t, config.n_images, float(config.duration))
-        R_w_o, p_w_o = rigid_motion(
-            k_obj,
-            times,
-            centre=jnp.asarray(config.work_centre, jnp.float64),
-            extent=config.work_extent,
-            max_angle=config.max_angle,
-        )
-        camera = _camera_trajectory(config, k_cam)
+        if given_times is None:
+            times = sample_times(k_t, config.n_images, float(config.duration))
+            R_w_o, p_w_o = rigid_motion(
+                k_obj,
+                times,
+                centre=jnp.asarray(config.work_centre, jnp.float64),
+                extent=config.work_extent,
+                max_angle=config.max_angle,
+            )
+            camera = _camera_trajectory(config, k_cam)
+        else:
+            times = jnp.asarray(given_times)
+            R_w_o, p_w_o = given_object
         p_w_c, q_w_c = jax.vmap(camera)(times)
         T_i_c = jaxlie.SE3.from_matrix(jnp.asarray(config.T_i_c))
         T_f_c = jaxlie.SE3.from_matrix(jnp.asarray(config.T_f_c))
