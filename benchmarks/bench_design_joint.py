@@ -15,7 +15,11 @@ pixel noise) reconstructed by ``estimate_points`` and by the DCT (``reconstruct`
 Usage::
 
     python benchmarks/bench_design_joint.py [--frames 60] [--starts 8] [--inner-steps 500]
-        [--estimator dct|smoother1|smoother2] [--out OUT/] [--compare [--draws 200]]
+        [--estimator dct|smoother1|smoother2|pose] [--out OUT/] [--compare [--draws 200]]
+
+``--estimator pose`` designs for the known-layout pose (the simulated workpiece's six
+marker centres, error of its assembly point) and checks the prediction against ``--draws``
+Monte-Carlo runs per image of OpenCV's SQPnP + LM with the designed cameras.
 
 Float64 is enabled below (a benchmark script may do so; library code never does).
 """
@@ -40,6 +44,7 @@ from jaxtraj.design_command import (  # noqa: E402
     _initial_guesses,
     design_cell,
     example_cell,
+    example_layout,
     write_design,
 )
 
@@ -61,6 +66,29 @@ def monte_carlo(P, samples, times, pixel_sigma, draws, seed=0):
         dct.append(np.linalg.norm(np.asarray(rec.points) - np.asarray(x)[None], axis=-1).mean())
         flagged.append(np.mean(np.asarray(est.status) != Status.OK))
     return float(np.mean(ep)), float(np.mean(dct)), float(np.mean(flagged))
+
+
+def monte_carlo_pnp(T_w_c, K, predicted, layout, pixel_sigma, draws, seed=0):
+    """Mean and RMS error [m] of the followed object point from OpenCV's SQPnP + LM on
+    ``draws`` noisy pixel sets per image (exact cameras, the predicted trajectory)."""
+    import cv2
+
+    points, point, R_w_o = (np.asarray(a, float) for a in layout)
+    rng = np.random.default_rng(seed)
+    K = np.asarray(K, float)
+    errors = []
+    for T, x in zip(np.asarray(T_w_c), np.asarray(predicted), strict=True):
+        R_c_w, c = T[:3, :3].T, T[:3, 3]
+        X_c = (points @ R_w_o.T + (x - R_w_o @ point) - c) @ R_c_w.T @ K.T
+        clean = X_c[:, :2] / X_c[:, 2:]
+        for _ in range(draws):
+            uv = clean + pixel_sigma * rng.normal(size=clean.shape)
+            _, rvec, tvec = cv2.solvePnP(points, uv, K, None, flags=cv2.SOLVEPNP_SQPNP)
+            rvec, tvec = cv2.solvePnPRefineLM(points, uv, K, None, rvec, tvec)
+            a_w = R_c_w.T @ (cv2.Rodrigues(rvec)[0] @ point + tvec.ravel()) + c
+            errors.append(np.linalg.norm(a_w - x))
+    e = np.asarray(errors)
+    return float(e.mean()), float(np.sqrt(np.mean(e**2)))
 
 
 def compare(args) -> int:
@@ -147,7 +175,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--inner-steps", type=int, default=500)
     parser.add_argument(
         "--estimator",
-        choices=("dct", "smoother1", "smoother2"),
+        choices=("dct", "smoother1", "smoother2", "pose"),
         default="dct",
         help="the estimator whose expected error is minimised",
     )
@@ -158,7 +186,10 @@ def main(argv: list[str] | None = None) -> int:
     if args.compare:
         return compare(args)
     spec = example_cell(frames=args.frames, starts=args.starts)
-    if args.estimator != "dct":
+    if args.estimator == "pose":
+        spec.method = "pose"
+        spec.layout, spec.point = example_layout()
+    elif args.estimator != "dct":
         spec.method, spec.order = "smoother", int(args.estimator[-1])
     res = design_cell(spec, inner_steps=args.inner_steps)
     best, designs = res["best"], res["designs"]
@@ -175,6 +206,17 @@ def main(argv: list[str] | None = None) -> int:
     print("10x finer grid, largest value per constraint:", res["fine_violation"])
     if args.out:
         write_design(args.out, spec, res)
+    if args.estimator == "pose":
+        T_w_c = camera_poses(res["cell"], res["model"].joints_at_images(best.theta))
+        mean, rms = monte_carlo_pnp(
+            T_w_c, spec.K, spec.predicted, res["layout"], spec.pixel_sigma, args.draws
+        )
+        print(
+            f"Monte-Carlo (OpenCV SQPnP + LM, {args.draws} draws x {args.frames} images, "
+            f"{spec.pixel_sigma} px): mean {1000 * mean:.3f} mm, RMS {1000 * rms:.3f} mm; "
+            f"predicted mean {1000 * float(best.expected_mean_error):.3f} mm, RMS "
+            f"{1000 * float(best.expected_error):.3f} mm"
+        )
     inits = jnp.stack([best.theta] * args.starts)
     t0 = time.perf_counter()
     warm, _ = design_joint_path(
@@ -186,6 +228,8 @@ def main(argv: list[str] | None = None) -> int:
         inits,
         objective=spec.objective,
         estimator=args.estimator,
+        layout=res["layout"],
+        pixel_sigma=spec.pixel_sigma,
         inner_steps=args.inner_steps,
     )
     warm.theta.block_until_ready()

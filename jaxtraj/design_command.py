@@ -24,7 +24,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from . import dct_basis, look_at
-from .design.joint_optimise import design_joint_path
+from .design.joint_optimise import design_joint_path, visible_points
 from .design.joint_path import (
     JOINT_CONSTRAINTS,
     JointPathModel,
@@ -37,7 +37,13 @@ from .io.cell import CellSpec
 from .io.urdf import load_robot
 from .robot import forward_kinematics, solve_ik
 
-__all__ = ["IPO_CYCLE", "design_cell", "example_cell", "write_design"]
+__all__ = [
+    "IPO_CYCLE",
+    "design_cell",
+    "example_cell",
+    "example_layout",
+    "write_design",
+]
 
 IPO_CYCLE = 0.012  # [s] KUKA KRC interpolation cycle
 
@@ -88,13 +94,25 @@ def example_cell(frames: int = 60, duration: float = 10.0, starts: int = 8) -> C
     )
 
 
+def example_layout() -> tuple[np.ndarray, np.ndarray]:
+    """The simulated workpiece's reference points (its six marker centres, object frame)
+    and its assembly point [m]: the known layout of the built-in cell (``"pose"``)."""
+    from types import SimpleNamespace
+
+    from .sim.cell import CellConfig
+    from .sim.recording import workpiece
+
+    _, model = workpiece(SimpleNamespace(config=CellConfig()))
+    return np.asarray(model.points, float), np.asarray(model.assembly_point, float)
+
+
 #: the ``kappa`` bound of a design for the per-point estimator: estimate_points' default
 MAX_DEPTH_UNCERTAINTY = 0.08
 
 
 def estimator_name(spec: CellSpec) -> str:
     """The ``estimator`` argument of :func:`design_joint_path` for a cell's estimator."""
-    return "dct" if spec.method == "dct" else f"smoother{spec.order}"
+    return f"smoother{spec.order}" if spec.method == "smoother" else spec.method
 
 
 def _start_configuration(spec: CellSpec, chain) -> np.ndarray:
@@ -161,7 +179,7 @@ def design_cell(spec: CellSpec, *, inner_steps: int = 500) -> dict:
         end_tolerance=spec.end_tolerance,
         use_end=spec.end_offset is not None,
         # designed for estimate_points: its tracks must come out with depth determined
-        max_depth_uncertainty=None if spec.method == "dct" else MAX_DEPTH_UNCERTAINTY,
+        max_depth_uncertainty=MAX_DEPTH_UNCERTAINTY if spec.method == "smoother" else None,
         depth_order=spec.order,
     )
     model = JointPathModel.create(spec.times, q0, n_control=spec.n_control)
@@ -171,6 +189,11 @@ def design_cell(spec: CellSpec, *, inner_steps: int = 500) -> dict:
     )
     basis = dct_basis(spec.times - spec.times[0], spec.k)
     inits = jnp.asarray(_initial_guesses(model, chain, spec.starts, spec.seed))
+    layout = None
+    if spec.method == "pose":
+        c0 = np.asarray(camera_poses(cell, jnp.asarray(q0)[None]))[0, :3, 3]
+        point = np.zeros(3) if spec.point is None else spec.point
+        layout = (spec.layout, point, spec.workpiece_orientation(c0))
     t0 = time.perf_counter()
     best, designs = design_joint_path(
         model,
@@ -181,13 +204,15 @@ def design_cell(spec: CellSpec, *, inner_steps: int = 500) -> dict:
         inits,
         objective=spec.objective,
         estimator=estimator_name(spec),
+        layout=layout,
         pixel_sigma=spec.pixel_sigma,
         inner_steps=inner_steps,
     )
     best.theta.block_until_ready()
     seconds = time.perf_counter() - t0
     fine = JointPathModel.create(spec.times, q0, n_control=spec.n_control, grid_per_image=100)
-    values = joint_constraint_values(fine, best.theta, cell, spec.predicted, samples)
+    visible = visible_points(samples, layout)
+    values = joint_constraint_values(fine, best.theta, cell, spec.predicted, visible)
     return {
         "chain": chain,
         "cell": cell,
@@ -196,6 +221,7 @@ def design_cell(spec: CellSpec, *, inner_steps: int = 500) -> dict:
         "designs": designs,
         "samples": samples,
         "basis": basis,
+        "layout": layout,
         "seconds": seconds,
         "fine_violation": {k: float(jnp.max(values[k])) for k in JOINT_CONSTRAINTS},
     }
@@ -249,6 +275,11 @@ def write_design(out: str | Path, spec: CellSpec, result: dict, plots: bool = Tr
             "expected_mean_error_m": np.asarray(designs.expected_mean_error).tolist(),
         },
         "fine_grid_violation": result["fine_violation"],
+        **(
+            {"workpiece_R_w_o": np.asarray(result["layout"][2]).tolist()}
+            if result.get("layout") is not None
+            else {}
+        ),
         "design_seconds": result["seconds"],
         "start_q_deg": np.degrees(np.asarray(model.q0)).tolist(),
         "joint_limits": {

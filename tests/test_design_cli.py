@@ -84,7 +84,7 @@ def test_cell_or_example_but_not_both(tmp_path, capsys):
         cell_from_dict(_cell(design={"objective": "speed"}))
     with pytest.raises(ValueError, match=r"'estimator\.method': expected 'dct'"):
         cell_from_dict(_cell(estimator={"method": "kalman"}))
-    with pytest.raises(ValueError, match=r"'order' to 'smoother'"):
+    with pytest.raises(ValueError, match=r"'estimator\.order' belongs to method 'smoother'"):
         cell_from_dict(_cell(estimator={"method": "dct", "order": 2}))
     with pytest.raises(ValueError, match=r"'estimator\.order': expected 1 or 2"):
         cell_from_dict(_cell(estimator={"method": "smoother", "order": 3}))

@@ -162,3 +162,45 @@ def test_design_converges_and_holds_on_a_10x_finer_grid(scene, rng):
         design_joint_path(model, cell, pred, samples, basis, inits[:, :2], **kwargs)
     with pytest.raises(ValueError, match="objective: expected one of"):
         design_joint_path(model, cell, pred, samples, basis, inits, objective="speed")
+
+
+def test_pose_estimator_evaluates_pnp_error_and_keeps_every_reference_point_in_view(scene, rng):
+    from jaxtraj.design import expected_pose_errors_for_cameras
+    from jaxtraj.design.joint_optimise import visible_points
+    from jaxtraj.design.joint_path import camera_poses, projection_matrices
+
+    model = JointPathModel.create(scene["times"], scene["q0"], n_control=8, grid_per_image=5)
+    thetas = rng.normal(0.0, 0.02, (2, *model.shape))
+    layout = np.array([[-0.1, -0.1, 0], [0.1, -0.1, 0], [0.1, 0.1, 0], [-0.1, 0.1, 0.05]])
+    point, R_w_o = np.array([0.02, 0.0, 0.0]), np.asarray(look_at([0, 0, 0.0], [-1, 0, 0.3])[0]).T
+    args = (model, thetas, scene["cell"], scene["predicted"], scene["samples"], scene["basis"])
+    pose = evaluate_joint_path(*args, estimator="pose", layout=(layout, point, R_w_o))
+    for b in range(2):
+        P = projection_matrices(
+            scene["cell"], camera_poses(scene["cell"], model.joints_at_images(thetas[b]))
+        )
+        rms, mean = expected_pose_errors_for_cameras(P, scene["samples"], R_w_o, layout, point, 0.3)
+        np.testing.assert_allclose(
+            [pose.expected_error[b], pose.expected_mean_error[b]], [rms, mean], rtol=1e-10
+        )
+        # the field of view covers every reference point along every sample (S * M points)
+        visible = visible_points(scene["samples"], (layout, point, R_w_o))
+        assert visible.shape == (4 * len(scene["samples"]), *scene["samples"].shape[1:])
+        np.testing.assert_allclose(visible[1], scene["samples"][0] + (layout[1] - point) @ R_w_o.T)
+        fov = joint_constraint_values(model, thetas[b], scene["cell"], scene["predicted"], visible)
+        i = JOINT_CONSTRAINTS.index("field_of_view")
+        np.testing.assert_allclose(pose.violation[b, i], jnp.max(fov["field_of_view"]), rtol=1e-12)
+    with pytest.raises(ValueError, match=r"the 'pose' estimator needs the object's layout"):
+        evaluate_joint_path(*args, estimator="pose")
+    with pytest.raises(ValueError, match=r"layout: expected \(M, 3\) reference points"):
+        evaluate_joint_path(*args, estimator="pose", layout=(layout[:3], point, R_w_o))
+
+
+def test_keep_out_sees_a_pass_between_grid_points():
+    from jaxtraj.design.joint_path import _swept_distance
+
+    # relative position passing 0.1 m from the workpiece between two grid points 2 m apart
+    r = jnp.array([[-1.0, 0.1, 0.0], [1.0, 0.1, 0.0], [1.0, 0.5, 0.0], [1.0, 0.5, 0.0]])
+    np.testing.assert_allclose(_swept_distance(r), [0.1, np.hypot(1.0, 0.1), np.hypot(1, 0.5)])
+    g = jax.grad(lambda r: jnp.sum(_swept_distance(r)))(r)
+    assert np.all(np.isfinite(np.asarray(g)))  # a zero-length chord (last one) included

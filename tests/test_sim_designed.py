@@ -74,6 +74,21 @@ def test_designed_cell_moves_the_camera_through_the_joint_path():
     # the camera matrix and hand-eye are the cell's
     np.testing.assert_allclose(cell.config.K, spec.K, atol=1e-9)
     np.testing.assert_allclose(cell.config.T_f_c, spec.T_f_c, atol=0)
+    # a cell designed for the known-layout pose: the orientation and followed point of
+    # the design (object z towards the start camera, or the cell's R_w_o)
+    spec.method, spec.layout, spec.point = "pose", np.eye(4, 3), np.array([0.02, 0.01, 0.0])
+    cell = designed_cell(spec, spec.times, q, seed=3)
+    T_w_o = pose_matrices(cell.object_pose)
+    R = spec.workpiece_orientation(T_ref[0, :3, 3])
+    np.testing.assert_allclose(T_w_o[:, :3, :3], np.repeat(R[None], len(q), 0), atol=1e-12)
+    np.testing.assert_allclose(
+        R[:, 2],
+        (T_ref[0, :3, 3] - spec.predicted[0]) / np.linalg.norm(T_ref[0, :3, 3] - spec.predicted[0]),
+        atol=1e-12,
+    )
+    np.testing.assert_allclose(
+        T_w_o[:, :3, :3] @ spec.point + T_w_o[:, :3, 3], spec.predicted, atol=1e-12
+    )
 
 
 def test_designed_cell_rejects_paths_a_robot_cannot_run():

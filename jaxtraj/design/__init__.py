@@ -5,6 +5,8 @@
 * :mod:`.objectives` - expected reconstruction error and eta, differentiable.
 * :mod:`.smoother_error` - expected error of the smoothness-prior smoother (the per-point
   estimator): the prior's bias plus the noise variance, exact for the linearised smoother.
+* :mod:`.pose_error` - expected error of the known-layout pose (per-image PnP of the
+  object's reference points), first order, with the exact mean of its Gaussian error.
 * :mod:`.constraints` - workspace, stand-off, field of view, velocity, acceleration, end
   pose, as normalised constraint values.
 * :mod:`.optimise` - penalty continuation with optimistix BFGS over several initial guesses.
@@ -39,6 +41,9 @@ from .optimise import PathDesign as PathDesign
 from .optimise import design_camera_path as design_camera_path
 from .optimise import evaluate_path as evaluate_path
 from .path import CameraPathModel as CameraPathModel
+from .pose_error import expected_pose_errors_for_cameras as expected_pose_errors_for_cameras
+from .pose_error import gaussian_mean_norm as gaussian_mean_norm
+from .pose_error import pose_point_covariances as pose_point_covariances
 from .smoother_error import (
     expected_smoother_errors_for_cameras as expected_smoother_errors_for_cameras,
 )

@@ -32,14 +32,21 @@ from .joint_path import (
     projection_matrices,
 )
 from .objectives import expected_errors_for_cameras
+from .pose_error import expected_pose_errors_for_cameras
 from .smoother_error import expected_smoother_errors_for_cameras
 
-__all__ = ["JointPathDesign", "design_joint_path", "evaluate_joint_path"]
+__all__ = [
+    "JointPathDesign",
+    "design_joint_path",
+    "evaluate_joint_path",
+    "visible_points",
+]
 
 JOINT_OBJECTIVES = ("mean_error", "error", "eta")
-#: estimators a path can be designed for: the DCT of the paper (basis ``basis``) and the
-#: smoothness-prior smoother of :func:`jaxtraj.estimate_points` (order 1 or 2)
-ESTIMATORS = ("dct", "smoother1", "smoother2")
+#: estimators a path can be designed for: the DCT of the paper (basis ``basis``), the
+#: smoothness-prior smoother of :func:`jaxtraj.estimate_points` (order 1 or 2) and the
+#: known-layout pose (per-image PnP of the object's reference points)
+ESTIMATORS = ("dct", "smoother1", "smoother2", "pose")
 
 
 class JointPathDesign(eqx.Module):
@@ -91,12 +98,20 @@ class _Problem(eqx.Module):
     basis: Array
     pixel_sigma: Array
     margin: Array
+    layout: Array  # (M, 3) reference points of the object (pose estimator only)
+    point: Array  # (3,) the object point the samples follow (pose estimator only)
+    R_w_o: Array  # (3, 3) the object's orientation (pose estimator only)
+    visible: Array  # (V, F, 3) points kept in the field of view (see visible_points)
 
     def errors(self, theta):
         T_w_c = camera_poses(self.cell, self.model.joints_at_images(theta))
         P = projection_matrices(self.cell, T_w_c)
         if self.estimator == "dct":
             return expected_errors_for_cameras(P, self.samples, self.basis, self.pixel_sigma)
+        if self.estimator == "pose":
+            return expected_pose_errors_for_cameras(
+                P, self.samples, self.R_w_o, self.layout, self.point, self.pixel_sigma
+            )
         order = int(self.estimator[-1])
         return expected_smoother_errors_for_cameras(
             P, self.samples, self.model.times, self.pixel_sigma, order
@@ -111,7 +126,7 @@ class _Problem(eqx.Module):
         return jnp.log(mean if self.kind == "mean_error" else rms)
 
     def constraints(self, theta):
-        values = joint_constraint_values(self.model, theta, self.cell, self.predicted, self.samples)
+        values = joint_constraint_values(self.model, theta, self.cell, self.predicted, self.visible)
         return jnp.concatenate([values[name] for name in JOINT_CONSTRAINTS]) + self.margin
 
 
@@ -155,7 +170,7 @@ def _design(inits, problem: _Problem, rhos, inner_steps, rtol):
 def _evaluate(thetas, stationarity, problem: _Problem, feasibility_tol, stationarity_tol):
     def one(theta, stat):
         values = joint_constraint_values(
-            problem.model, theta, problem.cell, problem.predicted, problem.samples
+            problem.model, theta, problem.cell, problem.predicted, problem.visible
         )
         viol = jnp.stack([jnp.max(values[name]) for name in JOINT_CONSTRAINTS])
         worst = jnp.maximum(jnp.max(viol), 0.0)
@@ -186,11 +201,29 @@ def _problem(
     dtype,
     margin=0.0,
     estimator="dct",
+    layout=None,
 ):
     if objective not in JOINT_OBJECTIVES:
         raise ValueError(f"objective: expected one of {JOINT_OBJECTIVES}, got {objective!r}")
     if estimator not in ESTIMATORS:
         raise ValueError(f"estimator: expected one of {ESTIMATORS}, got {estimator!r}")
+    if (estimator == "pose") != (layout is not None):
+        raise ValueError(
+            "layout: the 'pose' estimator needs the object's layout (layout, point, R_w_o), "
+            "and the other estimators take none"
+        )
+    samples = jnp.asarray(samples, dtype)
+    pose = layout is not None
+    if layout is None:
+        layout = (jnp.zeros((4, 3)), jnp.zeros(3), jnp.eye(3))
+    points, point, R_w_o = (jnp.asarray(a, dtype) for a in layout)
+    if points.ndim != 2 or points.shape[1] != 3 or points.shape[0] < 4:
+        raise ValueError(f"layout: expected (M, 3) reference points, M >= 4, got {points.shape}")
+    if point.shape != (3,) or R_w_o.shape != (3, 3):
+        raise ValueError(
+            f"layout: expected point (3,) and R_w_o (3, 3), got {point.shape} and {R_w_o.shape}"
+        )
+    visible = visible_points(samples, (points, point, R_w_o)) if pose else samples
     return _Problem(
         objective,
         estimator,
@@ -201,7 +234,25 @@ def _problem(
         jnp.asarray(basis, dtype),
         jnp.asarray(pixel_sigma, dtype),
         jnp.asarray(margin, dtype),
+        points,
+        point,
+        R_w_o,
+        visible,
     )
+
+
+def visible_points(
+    samples: Float[ArrayLike, "S F 3"], layout: tuple | None = None
+) -> Float[Array, "V F 3"]:
+    """The points a design keeps in the field of view: the sample trajectories, or for the
+    known-layout pose (``layout = (points, point, R_w_o)``) every reference point of the
+    object along each sample (S * M trajectories): PnP needs them all in the image."""
+    samples = jnp.asarray(samples)
+    if layout is None:
+        return samples
+    points, point, R_w_o = (jnp.asarray(a, samples.dtype) for a in layout)
+    offsets = (points - point) @ R_w_o.T  # (M, 3): reference point minus followed point
+    return (samples[:, None] + offsets[None, :, None]).reshape(-1, *samples.shape[1:])
 
 
 def evaluate_joint_path(
@@ -215,6 +266,7 @@ def evaluate_joint_path(
     pixel_sigma: float = 0.3,
     feasibility_tol: float = 1e-3,
     estimator: str = "dct",
+    layout: tuple | None = None,
 ) -> JointPathDesign:
     """Errors (for ``estimator``, see :func:`design_joint_path`) and constraint report of
     given paths (leading axis B; stationarity nan)."""
@@ -229,6 +281,7 @@ def evaluate_joint_path(
         pixel_sigma,
         thetas.dtype,
         estimator=estimator,
+        layout=layout,
     )
     nan = jnp.full(thetas.shape[:1], jnp.nan, thetas.dtype)
     return _evaluate(thetas, nan, problem, feasibility_tol, 0.0)
@@ -244,6 +297,7 @@ def design_joint_path(
     *,
     objective: str = "mean_error",
     estimator: str = "dct",
+    layout: tuple | None = None,
     pixel_sigma: float = 0.3,
     penalties: tuple[float, ...] = (10.0, 30.0, 100.0, 100.0, 100.0, 100.0, 100.0, 100.0),
     inner_steps: int = 500,
@@ -270,7 +324,12 @@ def design_joint_path(
             ``"smoother1"`` / ``"smoother2"`` (the smoothness prior of that order, as
             :func:`jaxtraj.estimate_points` fits it, with its noise density chosen by the
             expected marginal likelihood; bias and noise variance of the linearised
-            smoother, :mod:`jaxtraj.design.smoother_error`).
+            smoother, :mod:`jaxtraj.design.smoother_error`) or ``"pose"`` (the object's
+            pose from its known reference points by per-image PnP, error of the object
+            point the samples follow; :mod:`jaxtraj.design.pose_error`).
+        layout: for ``"pose"`` only: ``(points, point, R_w_o)``, the (M, 3) reference
+            points and the (3,) followed point in the object frame [m], and the object's
+            (3, 3) orientation in the world.
         pixel_sigma: detection noise [px].
         penalties: ``rho`` per augmented-Lagrangian round.
         inner_steps: BFGS steps per round; rtol: its tolerance.
@@ -300,6 +359,7 @@ def design_joint_path(
         inits.dtype,
         grid_margin,
         estimator,
+        layout,
     )
     rhos = jnp.asarray(penalties, inits.dtype)
     thetas, stationarity = _design(inits, problem, rhos, inner_steps, rtol)

@@ -22,7 +22,8 @@ Constraints (normalised, feasible where ``g <= 0``; ``0.1`` means 10 % past the 
   the optical axis (images);
 * ``standoff`` - camera-to-prediction distance in ``[d_min, d_max]`` (images);
 * ``keep_out`` - camera centre and flange at least ``keep_out_radius`` from the predicted
-  workpiece point (grid; the prediction interpolated linearly);
+  workpiece point (grid; the prediction interpolated linearly), checked on the chords
+  between consecutive grid points, not only at them (a fast pass can fall between);
 * ``floor`` - every joint frame, the flange and the camera at least ``floor_clearance``
   above the floor plane ``z = floor_z`` (grid);
 * ``end`` - optional: camera centre at the end time within ``end_tolerance`` of
@@ -198,6 +199,17 @@ def projection_matrices(cell: RobotCell, T_w_c: Float[Array, "F 4 4"]) -> Float[
     return cell.K @ jnp.concatenate([R_c_w, t_c_w[:, :, None]], axis=2)
 
 
+def _swept_distance(r: Float[Array, "G 3"]) -> Float[Array, " G-1"]:
+    """Closest approach to the origin of the relative position ``r`` between consecutive
+    grid points (the chord ``r_i -> r_i+1``), so that a fast pass through the keep-out
+    sphere between two grid points is seen (the point distances alone missed passes that
+    went 9 % of the radius inside it on a 10x finer grid)."""
+    a, d = r[:-1], jnp.diff(r, axis=0)
+    dd = jnp.sum(d * d, axis=1)
+    s = jnp.clip(-jnp.sum(a * d, axis=1) / jnp.maximum(dd, 1e-30), 0.0, 1.0)
+    return jnp.linalg.norm(a + s[:, None] * d, axis=1)
+
+
 def joint_constraint_values(
     model: JointPathModel,
     theta: Float[ArrayLike, "p n"],
@@ -230,8 +242,8 @@ def joint_constraint_values(
     values["floor"] = (cell.floor_z + cell.floor_clearance - heights) / cell.floor_clearance
     dist = jnp.stack(
         [
-            jnp.linalg.norm(cam_grid - x_grid, axis=1),
-            jnp.linalg.norm(frames[:, -1, :3, 3] - x_grid, axis=1),
+            _swept_distance(cam_grid - x_grid),
+            _swept_distance(frames[:, -1, :3, 3] - x_grid),
         ],
         axis=1,
     )

@@ -16,6 +16,11 @@ A JSON object (SI units except where a key says ``_deg``)::
       "end": {"offset": [0, 0, 0.6], "tolerance": 0.05},             # optional
       "estimator": {"method": "dct", "k": 12, "pixel_sigma": 0.3},   # optional; or
                    {"method": "smoother", "order": 2, "pixel_sigma": 0.3}  # estimate_points' prior
+                   {"method": "pose", "layout": [[x, y, z], ...], "point": [x, y, z],
+                    "R_w_o": [[...3x3...]], "pixel_sigma": 0.3}  # per-image PnP of the
+                   # object's >= 4 reference points (object frame [m]); "point": the object
+                   # point the prediction follows (default origin); "R_w_o": the object's
+                   # orientation (default: its z axis towards the camera's start position)
       "design": {"starts": 8, "n_control": 12, "objective": "mean_error",
                  "plausible_extent": 0.03, "plausible_samples": 2, "seed": 0}
     }
@@ -61,6 +66,9 @@ class CellSpec:
     k: int = 12
     order: int = 2
     pixel_sigma: float = 0.3
+    layout: np.ndarray | None = None
+    point: np.ndarray | None = None
+    R_w_o: np.ndarray | None = None
     starts: int = 8
     n_control: int = 12
     objective: str = "mean_error"
@@ -89,11 +97,7 @@ class CellSpec:
                 "floor_z": self.floor_z,
                 "floor_clearance": self.floor_clearance,
             },
-            "estimator": (
-                {"method": self.method, "k": self.k, "pixel_sigma": self.pixel_sigma}
-                if self.method == "dct"
-                else {"method": self.method, "order": self.order, "pixel_sigma": self.pixel_sigma}
-            ),
+            "estimator": self._estimator_dict(),
             "design": {
                 "starts": self.starts,
                 "n_control": self.n_control,
@@ -109,6 +113,30 @@ class CellSpec:
             out["limits"]["jerk_deg_s3"] = np.degrees(self.jerk).tolist()
         if self.end_offset is not None:
             out["end"] = {"offset": self.end_offset.tolist(), "tolerance": self.end_tolerance}
+        return out
+
+    def workpiece_orientation(self, camera_centre) -> np.ndarray:
+        """``R_w_o`` of a known-layout cell: the cell's ``R_w_o``, or the object z axis
+        from the first prediction towards ``camera_centre`` (image-y-down convention of
+        :func:`jaxtraj.look_at`, world z up)."""
+        if self.R_w_o is not None:
+            return np.asarray(self.R_w_o, float)
+        from ..camera import look_at
+
+        R_o_w, _ = look_at(np.asarray(self.predicted[0], float), np.asarray(camera_centre, float))
+        return np.asarray(R_o_w, float).T
+
+    def _estimator_dict(self) -> dict:
+        out = {"method": self.method, "pixel_sigma": self.pixel_sigma}
+        if self.method == "dct":
+            out["k"] = self.k
+        elif self.method == "smoother":
+            out["order"] = self.order
+        else:
+            out["layout"] = self.layout.tolist()
+            out["point"] = (np.zeros(3) if self.point is None else self.point).tolist()
+            if self.R_w_o is not None:
+                out["R_w_o"] = self.R_w_o.tolist()
         return out
 
 
@@ -251,18 +279,36 @@ def cell_from_dict(data: dict, where: str = "CELL.json") -> CellSpec:
         if "tolerance" in end:
             spec.end_tolerance = _number(f"{where}: 'end.tolerance'", end["tolerance"], True)
     est = _object(
-        f"{where}: 'estimator'", data.get("estimator", {}), {"method", "k", "order", "pixel_sigma"}
+        f"{where}: 'estimator'",
+        data.get("estimator", {}),
+        {"method", "k", "order", "pixel_sigma", "layout", "point", "R_w_o"},
     )
     spec.method = est.get("method", "dct")
-    if spec.method not in ("dct", "smoother"):
+    if spec.method not in ("dct", "smoother", "pose"):
         raise ValueError(
-            f"{where}: 'estimator.method': expected 'dct' (the paper's DCT) or 'smoother' "
-            f"(the smoothness prior of estimate_points), got {spec.method!r}"
+            f"{where}: 'estimator.method': expected 'dct' (the paper's DCT), 'smoother' "
+            f"(the smoothness prior of estimate_points) or 'pose' (per-image PnP of a known "
+            f"layout), got {spec.method!r}"
         )
-    if ("k" in est and spec.method != "dct") or ("order" in est and spec.method != "smoother"):
-        raise ValueError(
-            f"{where}: 'estimator': 'k' belongs to method 'dct', 'order' to 'smoother'"
-        )
+    owner = {"k": "dct", "order": "smoother", "layout": "pose", "point": "pose", "R_w_o": "pose"}
+    for key, method in owner.items():
+        if key in est and spec.method != method:
+            raise ValueError(f"{where}: 'estimator.{key}' belongs to method {method!r}")
+    if spec.method == "pose":
+        if "layout" not in est:
+            raise ValueError(f"{where}: 'estimator': method 'pose' needs 'layout'")
+        spec.layout = _array(f"{where}: 'estimator.layout'", est["layout"], (None, 3))
+        centred = spec.layout - spec.layout.mean(0)
+        if len(spec.layout) < 4 or np.linalg.matrix_rank(centred, tol=1e-6) < 2:
+            raise ValueError(
+                f"{where}: 'estimator.layout': expected >= 4 reference points, not all on one line"
+            )
+        spec.point = _array(f"{where}: 'estimator.point'", est.get("point", [0, 0, 0]), (3,))
+        if "R_w_o" in est:
+            R = _array(f"{where}: 'estimator.R_w_o'", est["R_w_o"], (3, 3))
+            if not np.allclose(R.T @ R, np.eye(3), atol=1e-6) or np.linalg.det(R) < 0:
+                raise ValueError(f"{where}: 'estimator.R_w_o': expected a rotation matrix")
+            spec.R_w_o = R
     if "order" in est:
         if est["order"] not in (1, 2) or isinstance(est["order"], bool):
             raise ValueError(f"{where}: 'estimator.order': expected 1 or 2, got {est['order']!r}")

@@ -9,7 +9,9 @@ recording then goes through the whole pipeline, so the measured error of the per
 trajectories can be compared with the error the design predicted.
 
 The workpiece plate keeps one orientation, facing the mean camera position, because a
-predicted trajectory gives positions only.
+predicted trajectory gives positions only; a cell designed for the known-layout pose
+(estimator ``"pose"``) uses the orientation and the followed object point it was designed
+for.
 """
 
 from __future__ import annotations
@@ -104,6 +106,11 @@ def designed_cell(
         centres = np.asarray(jax.vmap(lambda s: camera(s)[0])(jnp.asarray(t)))
         # the plate faces the mean camera position (object z towards the camera)
         R_o_w, _ = look_at(p_point.mean(0), centres.mean(0), up_w=(0.0, 0.0, 1.0))
-    R_w_o = np.repeat(np.asarray(R_o_w).T[None], t.size, axis=0)
+    R = np.asarray(R_o_w).T
+    if spec.method == "pose":  # the orientation and followed point the path was designed for
+        R = spec.workpiece_orientation(centres[0])
+        point = np.zeros(3) if spec.point is None else np.asarray(spec.point, float)
+        config = dataclasses.replace(config, assembly_point=tuple(point.tolist()))
+    R_w_o = np.repeat(R[None], t.size, axis=0)
     p_w_o = p_point - R_w_o @ np.asarray(config.assembly_point)
     return simulate_cell(config, seed, times=t, camera=camera, object_pose=(R_w_o, p_w_o))
