@@ -20,7 +20,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import optimistix as optx
-from jaxtyping import Array, ArrayLike, Bool, Float
+from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
 from ..analysis import reconstructibility
 from .joint_path import (
@@ -65,6 +65,10 @@ class JointPathDesign(eqx.Module):
         converged: ``max_violation <= feasibility_tol`` and ``stationarity <=
             stationarity_tol``.
         feasible: ``max_violation <= feasibility_tol`` and a finite expected error.
+        multipliers: (G,) the augmented Lagrangian's multipliers, one per constraint value
+            (zeros for an evaluated path); pass them back with the design for a warm
+            re-plan (``design_joint_path(..., multipliers=)``).
+        rounds: augmented-Lagrangian rounds used (each start stops when it is converged).
     """
 
     theta: Float[Array, "p n"]
@@ -75,6 +79,8 @@ class JointPathDesign(eqx.Module):
     stationarity: Float[Array, ""]
     converged: Bool[Array, ""]
     feasible: Bool[Array, ""]
+    multipliers: Float[Array, " G"]
+    rounds: Int[Array, ""]
 
     def report(self) -> dict:
         """Per constraint: largest value, active (within 0.02), satisfied (host side)."""
@@ -138,14 +144,24 @@ def _lagrangian(theta, args):
 
 
 @eqx.filter_jit
-def _design(inits, problem: _Problem, rhos, inner_steps, rtol):
+def _design(inits, lams, problem: _Problem, rhos, inner_steps, rtol, feasibility_tol, stat_tol):
+    """ALM rounds from each start until its design is converged or the rounds run out."""
     solver = optx.BFGS(rtol=rtol, atol=rtol * 1e-2)
+    n_rounds = rhos.shape[0]
 
-    def one(theta0):
-        lam0 = jnp.zeros_like(problem.constraints(theta0))
+    def measures(theta, lam):
+        """(stationarity, largest violation of the margined constraints) at ``theta``."""
+        grad = jax.grad(lambda th: problem.objective(th) + lam @ problem.constraints(th))(theta)
+        return jnp.max(jnp.abs(grad)), jnp.maximum(jnp.max(problem.constraints(theta)), 0.0)
 
-        def round_(carry, rho):
-            theta, lam = carry
+    def one(theta0, lam0):
+        def going(carry):
+            i, _, _, stat, viol = carry
+            return (i < n_rounds) & ((viol > feasibility_tol) | (stat > stat_tol))
+
+        def round_(carry):
+            i, theta, lam, _, _ = carry
+            rho = rhos[i]
             sol = optx.minimise(
                 _lagrangian,
                 solver,
@@ -157,18 +173,18 @@ def _design(inits, problem: _Problem, rhos, inner_steps, rtol):
             ok = jnp.all(jnp.isfinite(sol.value))
             theta = jnp.where(ok, sol.value, theta)
             lam = jnp.maximum(lam + rho * problem.constraints(theta), 0.0)
-            return (theta, lam), None
+            return (i + 1, theta, lam, *measures(theta, lam))
 
-        (theta, lam), _ = jax.lax.scan(round_, (theta0, lam0), rhos)
-        grad = jax.grad(lambda th: problem.objective(th) + lam @ problem.constraints(th))(theta)
-        return theta, jnp.max(jnp.abs(grad))
+        start = (jnp.zeros((), jnp.int32), theta0, lam0, *measures(theta0, lam0))
+        rounds, theta, lam, stat, _ = jax.lax.while_loop(going, round_, start)
+        return theta, lam, stat, rounds
 
-    return jax.vmap(one)(inits)
+    return jax.vmap(one)(inits, lams)
 
 
 @eqx.filter_jit
-def _evaluate(thetas, stationarity, problem: _Problem, feasibility_tol, stationarity_tol):
-    def one(theta, stat):
+def _evaluate(thetas, stationarity, lams, rounds, problem, feasibility_tol, stationarity_tol):
+    def one(theta, stat, lam, n):
         values = joint_constraint_values(
             problem.model, theta, problem.cell, problem.predicted, problem.visible
         )
@@ -185,9 +201,11 @@ def _evaluate(thetas, stationarity, problem: _Problem, feasibility_tol, stationa
             stationarity=stat,
             converged=feasible & (stat <= stationarity_tol),
             feasible=feasible,
+            multipliers=lam,
+            rounds=n,
         )
 
-    return jax.vmap(one)(thetas, stationarity)
+    return jax.vmap(one)(thetas, stationarity, lams, rounds)
 
 
 def _problem(
@@ -284,7 +302,10 @@ def evaluate_joint_path(
         layout=layout,
     )
     nan = jnp.full(thetas.shape[:1], jnp.nan, thetas.dtype)
-    return _evaluate(thetas, nan, problem, feasibility_tol, 0.0)
+    n_values = jax.eval_shape(problem.constraints, thetas[0]).shape[0]
+    lams = jnp.zeros((thetas.shape[0], n_values), thetas.dtype)
+    rounds = jnp.zeros(thetas.shape[:1], jnp.int32)
+    return _evaluate(thetas, nan, lams, rounds, problem, feasibility_tol, 0.0)
 
 
 def design_joint_path(
@@ -295,6 +316,7 @@ def design_joint_path(
     basis: Float[ArrayLike, "F kb"],
     inits: Float[ArrayLike, "B p n"],
     *,
+    multipliers: Float[ArrayLike, "B G"] | None = None,
     objective: str = "mean_error",
     estimator: str = "dct",
     layout: tuple | None = None,
@@ -316,6 +338,10 @@ def design_joint_path(
         basis: (F, kb) the reconstruction's DCT basis at the image times.
         inits: (B, p, n) initial parameters (e.g. :meth:`JointPathModel.fit` of heuristic
             joint paths, or the last design for a warm re-plan).
+        multipliers: (B, G) initial multipliers (default zeros); for a warm re-plan the
+            last design's ``multipliers``, with ``penalties`` starting at its last penalty:
+            a start already converged for the new prediction then stops at once, one that
+            is not needs a round or two instead of the whole continuation.
         objective: ``"mean_error"`` (expected mean Euclidean error, default),
             ``"error"`` (expected RMS error) or ``"eta"`` (maximise Park et al.'s eta,
             geometric mean over the samples; cheap, but blind to conditioning).
@@ -331,7 +357,8 @@ def design_joint_path(
             points and the (3,) followed point in the object frame [m], and the object's
             (3, 3) orientation in the world.
         pixel_sigma: detection noise [px].
-        penalties: ``rho`` per augmented-Lagrangian round.
+        penalties: ``rho`` per augmented-Lagrangian round; each start stops after the
+            round that makes it converged (both tolerances below).
         inner_steps: BFGS steps per round; rtol: its tolerance.
         grid_margin: the design holds every normalised constraint to ``<= -grid_margin``
             on its grid (1 % of the limit by default), so that it still holds between the
@@ -362,9 +389,22 @@ def design_joint_path(
         layout,
     )
     rhos = jnp.asarray(penalties, inits.dtype)
-    thetas, stationarity = _design(inits, problem, rhos, inner_steps, rtol)
+    n_values = jax.eval_shape(problem.constraints, inits[0]).shape[0]
+    if multipliers is None:
+        lams = jnp.zeros((inits.shape[0], n_values), inits.dtype)
+    else:
+        lams = jnp.asarray(multipliers, inits.dtype)
+        if lams.shape != (inits.shape[0], n_values):
+            raise ValueError(
+                f"multipliers: expected shape ({inits.shape[0]}, {n_values}), got {lams.shape}"
+            )
+    thetas, lams, stationarity, rounds = _design(
+        inits, lams, problem, rhos, inner_steps, rtol, feasibility_tol, stationarity_tol
+    )
     report = eqx.tree_at(lambda p: p.margin, problem, jnp.zeros_like(problem.margin))
-    designs = _evaluate(thetas, stationarity, report, feasibility_tol, stationarity_tol)
+    designs = _evaluate(
+        thetas, stationarity, lams, rounds, report, feasibility_tol, stationarity_tol
+    )
     metric = designs.expected_error if objective == "error" else designs.expected_mean_error
     score = jnp.where(designs.feasible, metric, jnp.inf)
     i = jnp.where(jnp.any(designs.feasible), jnp.argmin(score), jnp.argmin(designs.max_violation))
