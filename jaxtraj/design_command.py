@@ -272,6 +272,7 @@ def write_design(out: str | Path, spec: CellSpec, result: dict, plots: bool = Tr
             "converged": np.asarray(designs.converged).tolist(),
             "max_violation": np.asarray(designs.max_violation).tolist(),
             "stationarity": np.asarray(designs.stationarity).tolist(),
+            "rounds": np.asarray(designs.rounds).tolist(),
             "expected_mean_error_m": np.asarray(designs.expected_mean_error).tolist(),
         },
         "fine_grid_violation": result["fine_violation"],
