@@ -121,9 +121,9 @@ def _start_configuration(spec: CellSpec, chain) -> np.ndarray:
     if spec.q_start is not None:
         q = np.asarray(spec.q_start)
         lo, hi = np.asarray(chain.lower), np.asarray(chain.upper)
-        bad = np.flatnonzero((q < lo) | (q > hi))
+        bad = chain.outside_limits(q)
         if bad.size:
-            j = bad[0]
+            j = bad[0, -1]
             raise ValueError(
                 f"start: {chain.joint_names[j]} = {np.degrees(q[j]):.1f} deg is outside its "
                 f"limits {np.degrees(lo[j]):.0f} .. {np.degrees(hi[j]):.0f} deg"

@@ -32,7 +32,7 @@ from .joint_path import (
     projection_matrices,
 )
 from .objectives import expected_errors_for_cameras
-from .pose_error import expected_pose_errors_for_cameras
+from .pose_error import _checked_layout, expected_pose_errors_for_cameras
 from .smoother_error import expected_smoother_errors_for_cameras
 
 __all__ = [
@@ -235,8 +235,7 @@ def _problem(
     if layout is None:
         layout = (jnp.zeros((4, 3)), jnp.zeros(3), jnp.eye(3))
     points, point, R_w_o = (jnp.asarray(a, dtype) for a in layout)
-    if points.ndim != 2 or points.shape[1] != 3 or points.shape[0] < 4:
-        raise ValueError(f"layout: expected (M, 3) reference points, M >= 4, got {points.shape}")
+    points = _checked_layout(points, dtype)
     if point.shape != (3,) or R_w_o.shape != (3, 3):
         raise ValueError(
             f"layout: expected point (3,) and R_w_o (3, 3), got {point.shape} and {R_w_o.shape}"

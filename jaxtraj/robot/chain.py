@@ -91,6 +91,14 @@ class KinematicChain(eqx.Module):
         q = jnp.asarray(q)
         return jnp.all((q >= self.lower - tol) & (q <= self.upper + tol), axis=-1)
 
+    def outside_limits(self, q: Float[ArrayLike, "... n"], tol: float = 0.0) -> np.ndarray:
+        """Indices (k, q.ndim) of the values of ``q`` outside the position limits by more
+        than ``tol``, in order (host side; the last index is the axis): what an error
+        message names."""
+        q = np.asarray(q)
+        lo, hi = np.asarray(self.lower), np.asarray(self.upper)
+        return np.argwhere((q < lo - tol) | (q > hi + tol))
+
 
 def _limit_array(name: str, value, n: int, dtype) -> Array:
     arr = np.asarray(value, dtype=float)

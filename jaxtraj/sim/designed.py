@@ -37,7 +37,7 @@ def _check_path(spec: CellSpec, chain, times: np.ndarray, q: np.ndarray) -> None
             f"joint path: expected ({times.size}, {chain.n}) axis values, got {q.shape}"
         )
     lo, hi = np.asarray(chain.lower), np.asarray(chain.upper)
-    bad = np.argwhere((q < lo - 1e-9) | (q > hi + 1e-9))
+    bad = chain.outside_limits(q, 1e-9)
     if bad.size:
         i, j = bad[0]
         raise ValueError(
