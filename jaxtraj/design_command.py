@@ -220,6 +220,7 @@ def design_cell(spec: CellSpec, *, inner_steps: int = 500) -> dict:
         "best": best,
         "designs": designs,
         "samples": samples,
+        "inits": inits,
         "basis": basis,
         "layout": layout,
         "seconds": seconds,
