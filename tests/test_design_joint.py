@@ -158,6 +158,29 @@ def test_design_converges_and_holds_on_a_10x_finer_grid(scene, rng):
         model, cell, pred + 0.01, samples + 0.01, basis, jnp.stack([best.theta] * 2), **kwargs
     )
     assert bool(warm.converged)
+    # started from a design and its multipliers, a start already converged stops at once
+    # (no round, the design unchanged) ...
+    assert np.all(np.asarray(designs.rounds) <= 6) and np.all(np.asarray(designs.rounds) >= 1)
+    _, again = design_joint_path(
+        model, cell, pred, samples, basis, designs.theta, multipliers=designs.multipliers, **kwargs
+    )
+    stopped = np.asarray(designs.rounds) < 6  # these stopped because they had converged
+    np.testing.assert_array_equal(np.asarray(again.rounds)[stopped], 0)
+    np.testing.assert_allclose(np.asarray(again.theta)[stopped], np.asarray(designs.theta)[stopped])
+    # ... and a moved prediction takes fewer rounds than the design did
+    warm2, _ = design_joint_path(
+        model,
+        cell,
+        pred + 0.01,
+        samples + 0.01,
+        basis,
+        designs.theta,
+        multipliers=designs.multipliers,
+        **kwargs,
+    )
+    assert bool(warm2.converged) and int(warm2.rounds) < int(best.rounds)
+    with pytest.raises(ValueError, match=r"multipliers: expected shape \(2, "):
+        design_joint_path(model, cell, pred, samples, basis, inits, multipliers=jnp.zeros(3))
     with pytest.raises(ValueError, match=r"inits: expected shape \(B, 5, 6\)"):
         design_joint_path(model, cell, pred, samples, basis, inits[:, :2], **kwargs)
     with pytest.raises(ValueError, match="objective: expected one of"):
