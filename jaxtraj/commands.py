@@ -307,7 +307,8 @@ def _design(args: Namespace, progress) -> int:
     write_design(args.out, spec, result, plots=not args.no_plots)
     best = result["best"]
     print(
-        f"design: expected mean error {1000 * float(best.expected_mean_error):.2f} mm, "
+        f"design: expected mean error {1000 * float(best.expected_mean_error):.2f} mm "
+        f"(worst frame {1000 * float(best.expected_worst_error):.1f} mm), "
         f"max violation {float(best.max_violation):.2e}, stationarity "
         f"{float(best.stationarity):.2e}, converged starts "
         f"{int(result['designs'].converged.sum())}/{spec.starts}, "

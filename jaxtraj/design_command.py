@@ -264,6 +264,7 @@ def write_design(out: str | Path, spec: CellSpec, result: dict, plots: bool = Tr
         "estimator": estimator_name(spec),
         "expected_mean_error_m": float(best.expected_mean_error),
         "expected_rms_error_m": float(best.expected_error),
+        "expected_worst_frame_error_m": float(best.expected_worst_error),
         "constraints": best.report(),
         "active_constraints": [k for k, v in best.report().items() if v["active"]],
         "max_violation": float(best.max_violation),

@@ -154,6 +154,8 @@ def test_design_converges_and_holds_on_a_10x_finer_grid(scene, rng):
     assert np.any(np.asarray(best.violation) > -0.02)  # some limit is active
     eta = evaluate_joint_path(model, jnp.stack([inits[0], best.theta]), cell, pred, samples, basis)
     assert float(eta.expected_mean_error[1]) < 0.5 * float(eta.expected_mean_error[0])
+    # the worst frame is at least the RMS over frames (the DCT's per-frame errors)
+    assert np.all(np.asarray(eta.expected_worst_error) >= np.asarray(eta.expected_error))
     warm, _ = design_joint_path(
         model, cell, pred + 0.01, samples + 0.01, basis, jnp.stack([best.theta] * 2), **kwargs
     )
@@ -188,7 +190,7 @@ def test_design_converges_and_holds_on_a_10x_finer_grid(scene, rng):
 
 
 def test_pose_estimator_evaluates_pnp_error_and_keeps_every_reference_point_in_view(scene, rng):
-    from jaxtraj.design import expected_pose_errors_for_cameras
+    from jaxtraj.design import expected_pose_errors_for_cameras, pose_point_covariances
     from jaxtraj.design.joint_optimise import visible_points
     from jaxtraj.design.joint_path import camera_poses, projection_matrices
 
@@ -213,6 +215,21 @@ def test_pose_estimator_evaluates_pnp_error_and_keeps_every_reference_point_in_v
         fov = joint_constraint_values(model, thetas[b], scene["cell"], scene["predicted"], visible)
         i = JOINT_CONSTRAINTS.index("field_of_view")
         np.testing.assert_allclose(pose.violation[b, i], jnp.max(fov["field_of_view"]), rtol=1e-12)
+        # the worst frame: the largest per-frame RMS over samples and frames
+        e2 = [
+            np.trace(
+                np.asarray(
+                    pose_point_covariances(
+                        P, np.repeat(R_w_o[None], len(P), 0), x - R_w_o @ point, layout, point, 0.3
+                    )
+                ),
+                axis1=1,
+                axis2=2,
+            )
+            for x in np.asarray(scene["samples"])
+        ]
+        np.testing.assert_allclose(pose.expected_worst_error[b], np.sqrt(np.max(e2)), rtol=1e-10)
+        assert pose.expected_worst_error[b] > pose.expected_error[b]
     with pytest.raises(ValueError, match=r"the 'pose' estimator needs the object's layout"):
         evaluate_joint_path(*args, estimator="pose")
     with pytest.raises(ValueError, match=r"layout: expected \(M, 3\) reference points"):
@@ -227,3 +244,20 @@ def test_keep_out_sees_a_pass_between_grid_points():
     np.testing.assert_allclose(_swept_distance(r), [0.1, np.hypot(1.0, 0.1), np.hypot(1, 0.5)])
     g = jax.grad(lambda r: jnp.sum(_swept_distance(r)))(r)
     assert np.all(np.isfinite(np.asarray(g)))  # a zero-length chord (last one) included
+
+
+def test_smoother_evaluation_reports_its_worst_frame(scene, rng):
+    from jaxtraj.design import expected_smoother_errors_for_cameras, smoother_error_terms
+    from jaxtraj.design.joint_path import camera_poses, projection_matrices
+
+    model = JointPathModel.create(scene["times"], scene["q0"], n_control=8, grid_per_image=5)
+    theta = rng.normal(0.0, 0.05, model.shape)
+    args = (model, theta[None], scene["cell"], scene["predicted"], scene["samples"])
+    ev = evaluate_joint_path(*args, scene["basis"], estimator="smoother2")
+    cell = scene["cell"]
+    P = projection_matrices(cell, camera_poses(cell, model.joints_at_images(theta)))
+    rms, mean = expected_smoother_errors_for_cameras(P, scene["samples"], scene["times"])
+    np.testing.assert_allclose([ev.expected_error[0], ev.expected_mean_error[0]], [rms, mean])
+    e2 = [sum(smoother_error_terms(P, x, scene["times"])[:2]) for x in scene["samples"]]
+    np.testing.assert_allclose(ev.expected_worst_error[0], np.sqrt(np.max(e2)), rtol=1e-8)
+    assert ev.expected_worst_error[0] > ev.expected_error[0]

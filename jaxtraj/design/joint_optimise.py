@@ -31,8 +31,9 @@ from .joint_path import (
     joint_constraint_values,
     projection_matrices,
 )
-from .objectives import expected_errors_for_cameras
-from .pose_error import _checked_layout, expected_pose_errors_for_cameras
+from .objectives import _sample_errors, expected_errors_for_cameras
+from .pose_error import _checked_layout, expected_pose_errors_for_cameras, pose_point_covariances
+from .smoother_error import _frame_errors2 as _smoother_frame_errors2
 from .smoother_error import expected_smoother_errors_for_cameras
 
 __all__ = [
@@ -57,6 +58,9 @@ class JointPathDesign(eqx.Module):
         expected_error: expected RMS error of the reconstruction [m] (the estimator the
             path is designed for: the DCT or the smoothness-prior smoother).
         expected_mean_error: expected mean Euclidean error (Jensen bound) [m].
+        expected_worst_error: the largest expected error of one frame, over the frames and
+            the plausible trajectories [m] (the mean may hide a poor frame, e.g. at an end;
+            ``jaxtraj reconstruct`` flags a track whose worst frame's std exceeds 10 mm).
         violation: (C,) largest normalised value per constraint, in the order of
             :data:`~jaxtraj.design.joint_path.JOINT_CONSTRAINTS` (<= 0: satisfied).
         max_violation: ``max(0, violation)`` over all constraints.
@@ -74,6 +78,7 @@ class JointPathDesign(eqx.Module):
     theta: Float[Array, "p n"]
     expected_error: Float[Array, ""]
     expected_mean_error: Float[Array, ""]
+    expected_worst_error: Float[Array, ""]
     violation: Float[Array, " C"]
     max_violation: Float[Array, ""]
     stationarity: Float[Array, ""]
@@ -109,9 +114,33 @@ class _Problem(eqx.Module):
     R_w_o: Array  # (3, 3) the object's orientation (pose estimator only)
     visible: Array  # (V, F, 3) points kept in the field of view (see visible_points)
 
-    def errors(self, theta):
+    def _cameras(self, theta):
         T_w_c = camera_poses(self.cell, self.model.joints_at_images(theta))
-        P = projection_matrices(self.cell, T_w_c)
+        return projection_matrices(self.cell, T_w_c)
+
+    def worst_frame_error(self, theta):
+        """``max sqrt(E|x_hat - x|^2)`` over the samples and frames [m] (reports only)."""
+        P = self._cameras(theta)
+        if self.estimator == "dct":
+            e2 = _sample_errors(P, self.samples, self.basis, self.pixel_sigma)
+        elif self.estimator == "pose":
+            R = jnp.broadcast_to(self.R_w_o, (P.shape[0], 3, 3))
+            e2 = jax.vmap(
+                lambda x: jnp.trace(
+                    pose_point_covariances(
+                        P, R, x - R @ self.point, self.layout, self.point, self.pixel_sigma
+                    ),
+                    axis1=-2,
+                    axis2=-1,
+                )
+            )(self.samples)
+        else:
+            order = int(self.estimator[-1])
+            e2 = _smoother_frame_errors2(P, self.samples, self.model.times, self.pixel_sigma, order)
+        return jnp.sqrt(jnp.max(jnp.where(jnp.isnan(e2), jnp.inf, e2)))
+
+    def errors(self, theta):
+        P = self._cameras(theta)
         if self.estimator == "dct":
             return expected_errors_for_cameras(P, self.samples, self.basis, self.pixel_sigma)
         if self.estimator == "pose":
@@ -196,6 +225,7 @@ def _evaluate(thetas, stationarity, lams, rounds, problem, feasibility_tol, stat
             theta=theta,
             expected_error=rms,
             expected_mean_error=mean,
+            expected_worst_error=problem.worst_frame_error(theta),
             violation=viol,
             max_violation=worst,
             stationarity=stat,

@@ -140,13 +140,15 @@ def expected_smoother_errors_for_cameras(
     if t is not None and (t.shape != (P.shape[0],) or np.any(np.diff(t) <= 0)):
         raise ValueError(f"times: expected {P.shape[0]} strictly increasing times")
 
-    return _expected(P, samples, jnp.asarray(times, P.dtype), pixel_sigma, order)
+    return _metrics(_frame_errors2(P, samples, jnp.asarray(times, P.dtype), pixel_sigma, order))
 
 
 @functools.partial(jax.jit, static_argnames=("order",))
-def _expected(P, samples, times, pixel_sigma, order):
+def _frame_errors2(P, samples, times, pixel_sigma, order):
+    """(S, F) expected squared error per sample and frame, ``bias^2 + var``."""
+
     def one(x):
         bias2, var, _ = _terms(P, x, times, pixel_sigma, order, None)
         return bias2 + var
 
-    return _metrics(jax.vmap(one)(samples))
+    return jax.vmap(one)(samples)
