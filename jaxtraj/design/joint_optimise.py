@@ -32,7 +32,7 @@ from .joint_path import (
     projection_matrices,
 )
 from .objectives import _sample_errors, expected_errors_for_cameras
-from .pose_error import _checked_layout, expected_pose_errors_for_cameras, pose_point_covariances
+from .pose_error import _checked_layout, _sample_covariances, expected_pose_errors_for_cameras
 from .smoother_error import _frame_errors2 as _smoother_frame_errors2
 from .smoother_error import expected_smoother_errors_for_cameras
 
@@ -124,16 +124,10 @@ class _Problem(eqx.Module):
         if self.estimator == "dct":
             e2 = _sample_errors(P, self.samples, self.basis, self.pixel_sigma)
         elif self.estimator == "pose":
-            R = jnp.broadcast_to(self.R_w_o, (P.shape[0], 3, 3))
-            e2 = jax.vmap(
-                lambda x: jnp.trace(
-                    pose_point_covariances(
-                        P, R, x - R @ self.point, self.layout, self.point, self.pixel_sigma
-                    ),
-                    axis1=-2,
-                    axis2=-1,
-                )
-            )(self.samples)
+            covs = _sample_covariances(
+                P, self.samples, self.R_w_o, self.layout, self.point, self.pixel_sigma
+            )
+            e2 = jnp.trace(covs, axis1=-2, axis2=-1)
         else:
             order = int(self.estimator[-1])
             e2 = _smoother_frame_errors2(P, self.samples, self.model.times, self.pixel_sigma, order)

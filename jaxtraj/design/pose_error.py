@@ -24,19 +24,13 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Float
 
+from ..fusion.imu import skew
+
 __all__ = [
     "expected_pose_errors_for_cameras",
     "gaussian_mean_norm",
     "pose_point_covariances",
 ]
-
-
-def _skew(v):
-    x, y, z = v[..., 0], v[..., 1], v[..., 2]
-    o = jnp.zeros_like(x)
-    return jnp.stack(
-        [jnp.stack([o, -z, y], -1), jnp.stack([z, o, -x], -1), jnp.stack([-y, x, o], -1)], -2
-    )
 
 
 def _frame_covariance(P, R, p, layout, point, pixel_sigma):
@@ -47,11 +41,11 @@ def _frame_covariance(P, R, p, layout, point, pixel_sigma):
     uv = h[:, :2] / h[:, 2:3]
     dudx = (P[None, :2, :3] - uv[:, :, None] * P[None, 2:3, :3]) / h[:, 2, None, None]
     G = jnp.concatenate(
-        [-_skew(offsets), jnp.broadcast_to(jnp.eye(3, dtype=P.dtype), (len(X), 3, 3))], -1
+        [-skew(offsets), jnp.broadcast_to(jnp.eye(3, dtype=P.dtype), (len(X), 3, 3))], -1
     )
     J = dudx @ G  # (M, 2, 6)
     info = jnp.einsum("mki,mkj->ij", J, J)
-    Ga = jnp.concatenate([-_skew(R @ point), jnp.eye(3, dtype=P.dtype)], -1)  # (3, 6)
+    Ga = jnp.concatenate([-skew(R @ point), jnp.eye(3, dtype=P.dtype)], -1)  # (3, 6)
     # the information is symmetric positive definite for >= 3 points in general position
     L = jnp.linalg.cholesky(info)
     A = jax.scipy.linalg.solve_triangular(L, Ga.T, lower=True)  # (6, 3)
@@ -131,19 +125,25 @@ def expected_pose_errors_for_cameras(
             f"samples: expected shape (S, {P.shape[0]}, 3) (one point per camera), got "
             f"{samples.shape}"
         )
+    covs = _sample_covariances(P, samples, R_w_o, layout, point, pixel_sigma)
+    e2 = jnp.trace(covs, axis1=-2, axis2=-1)
+    rms = jnp.sqrt(jnp.mean(e2))
+    mean = jnp.mean(gaussian_mean_norm(covs))
+    return jnp.where(jnp.isnan(rms), jnp.inf, rms), jnp.where(jnp.isnan(mean), jnp.inf, mean)
+
+
+def _sample_covariances(P, samples, R_w_o, layout, point, pixel_sigma):
+    """(S, F, 3, 3) covariances of the followed point along each sample trajectory, the
+    object held at the orientation ``R_w_o``."""
+    dtype = P.dtype
     layout = _checked_layout(layout, dtype)
     R = jnp.broadcast_to(jnp.asarray(R_w_o, dtype), (P.shape[0], 3, 3))
     point = jnp.asarray(point, dtype)
 
     def one(x):
-        p = x - R @ point
-        return pose_point_covariances(P, R, p, layout, point, pixel_sigma)
+        return pose_point_covariances(P, R, x - R @ point, layout, point, pixel_sigma)
 
-    covs = jax.vmap(one)(samples)  # (S, F, 3, 3)
-    e2 = jnp.trace(covs, axis1=-2, axis2=-1)
-    rms = jnp.sqrt(jnp.mean(e2))
-    mean = jnp.mean(gaussian_mean_norm(covs))
-    return jnp.where(jnp.isnan(rms), jnp.inf, rms), jnp.where(jnp.isnan(mean), jnp.inf, mean)
+    return jax.vmap(one)(jnp.asarray(samples, dtype))
 
 
 #: quadrature nodes in ``log s`` for :func:`gaussian_mean_norm` (step 0.25 over [-40, 40]:
