@@ -192,8 +192,7 @@ def design_cell(spec: CellSpec, *, inner_steps: int = 500) -> dict:
     layout = None
     if spec.method == "pose":
         c0 = np.asarray(camera_poses(cell, jnp.asarray(q0)[None]))[0, :3, 3]
-        point = np.zeros(3) if spec.point is None else spec.point
-        layout = (spec.layout, point, spec.workpiece_orientation(c0))
+        layout = (spec.layout, spec.point, spec.workpiece_orientation(c0))
     t0 = time.perf_counter()
     best, designs = design_joint_path(
         model,

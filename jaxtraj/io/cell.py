@@ -67,7 +67,7 @@ class CellSpec:
     order: int = 2
     pixel_sigma: float = 0.3
     layout: np.ndarray | None = None
-    point: np.ndarray | None = None
+    point: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros(3))
     R_w_o: np.ndarray | None = None
     starts: int = 8
     n_control: int = 12
@@ -134,7 +134,7 @@ class CellSpec:
             out["order"] = self.order
         else:
             out["layout"] = self.layout.tolist()
-            out["point"] = (np.zeros(3) if self.point is None else self.point).tolist()
+            out["point"] = np.asarray(self.point).tolist()
             if self.R_w_o is not None:
                 out["R_w_o"] = self.R_w_o.tolist()
         return out

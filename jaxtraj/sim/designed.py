@@ -109,8 +109,8 @@ def designed_cell(
     R = np.asarray(R_o_w).T
     if spec.method == "pose":  # the orientation and followed point the path was designed for
         R = spec.workpiece_orientation(centres[0])
-        point = np.zeros(3) if spec.point is None else np.asarray(spec.point, float)
-        config = dataclasses.replace(config, assembly_point=tuple(point.tolist()))
+        point = tuple(np.asarray(spec.point, float).tolist())
+        config = dataclasses.replace(config, assembly_point=point)
     R_w_o = np.repeat(R[None], t.size, axis=0)
     p_w_o = p_point - R_w_o @ np.asarray(config.assembly_point)
     return simulate_cell(config, seed, times=t, camera=camera, object_pose=(R_w_o, p_w_o))
