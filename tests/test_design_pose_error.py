@@ -15,8 +15,8 @@ from jaxtraj.design import (
     gaussian_mean_norm,
     pose_point_covariances,
 )
-from jaxtraj.design_command import example_cell
 from jaxtraj.io.cell import cell_from_dict
+from tests.test_design_cli import _cell
 
 F, SIGMA, DRAWS = 12, 0.4, 150
 K = np.array([[700.0, 0.0, 319.5], [0.0, 700.0, 239.5], [0.0, 0.0, 1.0]])
@@ -32,12 +32,6 @@ LAYOUT = np.array(
     ]
 )
 POINT = np.array([0.05, -0.02, 0.0])
-
-
-def _cell(**changes) -> dict:
-    data = example_cell(frames=12).to_dict()
-    data.update(changes)
-    return data
 
 
 def _cameras(seed, x, distance, cone):
