@@ -12,7 +12,7 @@ from __future__ import annotations
 import jax.numpy as jnp
 from jaxtyping import Array, Float
 
-__all__ = ["cholesky_small", "det3", "solve_spd_small", "solve_triangular_small"]
+__all__ = ["cholesky_small", "det3", "matmul_small", "solve_spd_small", "solve_triangular_small"]
 
 
 def cholesky_small(A: Float[Array, "s s"]) -> Float[Array, "s s"]:
@@ -49,3 +49,14 @@ def det3(M: Float[Array, "*b 3 3"]) -> Float[Array, " *b"]:
     """Determinants of 3x3 matrices (any leading axes) as triple products of their rows:
     ``jnp.linalg.det`` is an LU factorisation, a batched LAPACK call over the leading axes."""
     return jnp.sum(M[..., 0, :] * jnp.cross(M[..., 1, :], M[..., 2, :]), axis=-1)
+
+
+def matmul_small(A: Float[Array, "*b m k"], B: Float[Array, "*b k n"]) -> Float[Array, "*b m n"]:
+    """``A @ B`` for small matrices (any broadcast leading axes) as a broadcast-and-sum.
+
+    Under ``vmap``, ``@`` on 3x3 or 4x4 blocks becomes a batched matrix product, which
+    XLA:CPU runs as many tiny GEMM calls; this form fuses into one loop. Measured on the
+    joint-path constraints (forward kinematics of 8 x 591 configurations with gradient):
+    30 -> 12 ms.
+    """
+    return jnp.sum(A[..., :, :, None] * B[..., None, :, :], axis=-2)

@@ -63,7 +63,7 @@ def safe_norm(x: Array, axis: int = -1) -> Array:
 
 def _off_axis(R_c_w, t_c_w, x):
     """Angle between the optical axis and the ray to world point x [rad]."""
-    xc = R_c_w @ x + t_c_w
+    xc = jnp.sum(R_c_w * x, axis=1) + t_c_w  # R x as a sum: fuses under vmap
     return jnp.arctan2(safe_norm(xc[:2]), xc[2])
 
 

@@ -44,6 +44,7 @@ import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
 from .._checks import check_shape
+from .._linalg import matmul_small
 from ..estimators._depth import depth_uncertainty
 from ..robot.chain import KinematicChain
 from ..robot.kinematics import joint_frames
@@ -189,14 +190,14 @@ class JointPathModel(eqx.Module):
 def camera_poses(cell: RobotCell, q: Float[Array, "T n"]) -> Float[Array, "T 4 4"]:
     """Camera poses ``T_w_c = T_w_base FK(q) T_f_c`` (T, 4, 4) of configurations (T, n)."""
     frames = jax.vmap(lambda qq: joint_frames(cell.chain, qq)[-1])(q)
-    return cell.T_w_base @ frames @ cell.T_f_c
+    return matmul_small(matmul_small(cell.T_w_base, frames), cell.T_f_c)
 
 
 def projection_matrices(cell: RobotCell, T_w_c: Float[Array, "F 4 4"]) -> Float[Array, "F 3 4"]:
     """(F, 3, 4) projection matrices ``K [R_c_w | t_c_w]`` of camera poses."""
     R_c_w = jnp.swapaxes(T_w_c[:, :3, :3], 1, 2)
-    t_c_w = -jnp.einsum("fij,fj->fi", R_c_w, T_w_c[:, :3, 3])
-    return cell.K @ jnp.concatenate([R_c_w, t_c_w[:, :, None]], axis=2)
+    t_c_w = -jnp.sum(R_c_w * T_w_c[:, None, :3, 3], axis=2)
+    return matmul_small(cell.K, jnp.concatenate([R_c_w, t_c_w[:, :, None]], axis=2))
 
 
 def _swept_distance(r: Float[Array, "G 3"]) -> Float[Array, " G-1"]:
@@ -235,8 +236,8 @@ def joint_constraint_values(
     ):
         values[name] = jnp.square(model.joints(theta, d) / limit) - 1.0
     # geometry on the grid: every joint frame, the flange and the camera
-    frames = cell.T_w_base @ jax.vmap(lambda qq: joint_frames(chain, qq))(q)  # (G, n+1, 4, 4)
-    cam_grid = (frames[:, -1] @ cell.T_f_c)[:, :3, 3]
+    frames = matmul_small(cell.T_w_base, jax.vmap(lambda qq: joint_frames(chain, qq))(q))
+    cam_grid = matmul_small(frames[:, -1], cell.T_f_c)[:, :3, 3]  # frames: (G, n+1, 4, 4)
     x_grid = jax.vmap(lambda c: jnp.interp(model.grid, model.times, c), 1, 1)(predicted)
     heights = jnp.concatenate([frames[:, :, 2, 3], cam_grid[:, 2:3]], axis=1)
     values["floor"] = (cell.floor_z + cell.floor_clearance - heights) / cell.floor_clearance
@@ -255,7 +256,7 @@ def joint_constraint_values(
     d_lo, d_hi = cell.standoff[0], cell.standoff[1]
     values["standoff"] = jnp.stack([(d_lo - d) / d_lo, (d - d_hi) / d_hi], axis=1)
     R_c_w = jnp.swapaxes(T_w_c[:, :3, :3], 1, 2)
-    t_c_w = -jnp.einsum("fij,fj->fi", R_c_w, c)
+    t_c_w = -jnp.sum(R_c_w * c[:, None, :], axis=2)
     ang = jax.vmap(lambda x: jax.vmap(_off_axis)(R_c_w, t_c_w, x))(jnp.asarray(samples, dtype))
     values["field_of_view"] = ang / (cell.half_fov - cell.fov_margin) - 1.0
     if cell.use_end:

@@ -24,6 +24,7 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Float
 
+from .._linalg import cholesky_small, matmul_small, solve_triangular_small
 from ..fusion.imu import skew
 
 __all__ = [
@@ -43,13 +44,13 @@ def _frame_covariance(P, R, p, layout, point, pixel_sigma):
     G = jnp.concatenate(
         [-skew(offsets), jnp.broadcast_to(jnp.eye(3, dtype=P.dtype), (len(X), 3, 3))], -1
     )
-    J = dudx @ G  # (M, 2, 6)
-    info = jnp.einsum("mki,mkj->ij", J, J)
-    Ga = jnp.concatenate([-skew(R @ point), jnp.eye(3, dtype=P.dtype)], -1)  # (3, 6)
-    # the information is symmetric positive definite for >= 3 points in general position
-    L = jnp.linalg.cholesky(info)
-    A = jax.scipy.linalg.solve_triangular(L, Ga.T, lower=True)  # (6, 3)
-    return jnp.asarray(pixel_sigma, P.dtype) ** 2 * (A.T @ A)
+    J = matmul_small(dudx, G).reshape(-1, 6)  # (2 M, 6)
+    info = jnp.sum(J[:, :, None] * J[:, None, :], axis=0)
+    Ga = jnp.concatenate([-skew(jnp.sum(R * point, axis=1)), jnp.eye(3, dtype=P.dtype)], -1)
+    # the information is symmetric positive definite for >= 3 points in general position;
+    # small unrolled factorisation: no LAPACK call per frame and sample under vmap
+    A = solve_triangular_small(cholesky_small(info), Ga.T)  # (6, 3)
+    return jnp.asarray(pixel_sigma, P.dtype) ** 2 * jnp.sum(A[:, :, None] * A[:, None, :], axis=0)
 
 
 def _checked_layout(layout, dtype):

@@ -14,6 +14,7 @@ from __future__ import annotations
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Float
 
+from .._linalg import matmul_small
 from .chain import KinematicChain
 
 __all__ = ["axis_rotation", "camera_pose", "forward_kinematics", "jacobian", "joint_frames"]
@@ -47,10 +48,12 @@ def joint_frames(chain: KinematicChain, q: Float[ArrayLike, " n"]) -> Float[Arra
     q = jnp.asarray(q, chain.origins.dtype)
     frames = []
     T = jnp.eye(4, dtype=chain.origins.dtype)
-    for i, kind in enumerate(chain.joint_types):  # n is static and small (6): unrolled
-        T = T @ chain.origins[i] @ _motion(kind, chain.axes[i], q[i])
+    # n is static and small (6): unrolled; 4x4 products as broadcast-and-sums, which fuse
+    # under vmap over many configurations (a path's grid) where ``@`` would not
+    for i, kind in enumerate(chain.joint_types):
+        T = matmul_small(matmul_small(T, chain.origins[i]), _motion(kind, chain.axes[i], q[i]))
         frames.append(T)
-    frames.append(T @ chain.tip)
+    frames.append(matmul_small(T, chain.tip))
     return jnp.stack(frames)
 
 
