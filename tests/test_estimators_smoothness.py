@@ -73,6 +73,18 @@ def test_block_tridiagonal_solver_matches_dense(rng, s):
     for i in range(F):
         np.testing.assert_allclose(S[i], Ainv[i * s : (i + 1) * s, i * s : (i + 1) * s], atol=1e-10)
     assert float(bt.logdet(chol)) == pytest.approx(np.linalg.slogdet(A)[1], rel=1e-11)
+    # diagonal blocks of A^-1 H A^-1 for H acting on the first 3 components of each state
+    H3 = rng.normal(size=(F, 3, 3))
+    H3 = H3 @ np.swapaxes(H3, 1, 2)
+    Hd = np.zeros_like(A)
+    for i in range(F):
+        Hd[i * s : i * s + 3, i * s : i * s + 3] = H3[i]
+    X = Ainv @ Hd @ Ainv
+    got = np.asarray(bt.diag_sandwich(chol, jnp.asarray(S), jnp.asarray(H3)))
+    for i in range(F):
+        np.testing.assert_allclose(
+            got[i], X[i * s : (i + 1) * s, i * s : (i + 1) * s], atol=1e-10 * np.abs(X).max()
+        )
     ch2, y = bt.factor_forward(jnp.asarray(D), jnp.asarray(E), jnp.asarray(b))
     np.testing.assert_allclose(np.asarray(bt.back_substitute(ch2, y)).ravel(), x, rtol=1e-10)
 

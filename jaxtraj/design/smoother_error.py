@@ -17,13 +17,14 @@ error has two parts, both exact for the linearised model:
   the ray in its null space), so only the prior sets the depth there: a slow camera,
   whose scale family ``c + s (x - c)`` is nearly as smooth as ``x``, gets a large bias,
   which is the failure that the posterior covariance alone does not show;
-* the noise covariance ``D^-1 H D^-1`` (``D = H + Lambda / q``), whose trace per frame is
-  computed exactly from ``2 F`` solves with the block-tridiagonal factor.
+* the noise covariance ``D^-1 H D^-1`` (``D = H + Lambda / q``), whose diagonal blocks
+  come exactly from a forward and a backward recursion over the block-tridiagonal factor
+  (:func:`jaxtraj.estimators._blocktri.diag_sandwich`).
 
 ``q`` is the one the estimator would choose: the minimiser of the expected marginal
 likelihood of the noisy pixels over :func:`jaxtraj.estimators.default_psd_grid` (the
 noise-free value plus the expected noise term ``-tr(D^-1 H)``), refined by a parabola in
-``log q``, held fixed for gradients. Everything is O(F^2) per trajectory (the 2F solves)
+``log q``, held fixed for gradients. Everything is O(F) per trajectory
 and differentiable with respect to the cameras.
 """
 
@@ -107,12 +108,9 @@ def _terms(P, x, times, pixel_sigma, order, process_psd):
     chol = bt.factor(D, E)
     z = bt.solve(chol, b)
     bias2 = jnp.sum((z[:, :3] - x) ** 2, axis=1)
-    # noise: D^-1 J^T W eps, one right-hand side per pixel coordinate (2F solves)
-    cols = jnp.sqrt(ww)[:, None, None] * J  # (F, 2, 3): whitened rows of J
-    rhs = jnp.zeros((F, 2, F, s), dtype)
-    rhs = rhs.at[jnp.arange(F), :, jnp.arange(F), :3].set(cols)
-    sol = jax.vmap(lambda r: bt.solve(chol, r))(rhs.reshape(2 * F, F, s))
-    noise_var = jnp.sum(sol[:, :, :3] ** 2, axis=(0, 2))
+    # noise: the covariance of D^-1 J^T W eps is D^-1 H D^-1, its diagonal blocks in O(F)
+    cov = bt.diag_sandwich(chol, bt.diag_inverse(chol), H)
+    noise_var = jnp.trace(cov[:, :3, :3], axis1=1, axis2=2)
     return bias2, noise_var, q / qscale
 
 

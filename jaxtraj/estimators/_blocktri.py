@@ -22,6 +22,7 @@ import jax.numpy as jnp
 from jaxtyping import Array, Float
 
 from .._linalg import cholesky_small as _cholesky
+from .._linalg import matmul_small as mm
 from .._linalg import solve_triangular_small as _tri
 
 
@@ -92,17 +93,62 @@ def diag_inverse(chol: BlockCholesky) -> Float[Array, "F s s"]:
     s = C.shape[-1]
     eye = jnp.eye(s, dtype=C.dtype)
     Cinv = jax.vmap(lambda c: _tri(c, eye))(C)  # C_i^-1
-    own = jnp.einsum("fji,fjk->fik", Cinv, Cinv)  # C_i^-T C_i^-1
-    K = jnp.einsum("fji,fkj->fik", Cinv[:-1], M)  # C_i^-T M_i^T
+    CinvT = jnp.swapaxes(Cinv, 1, 2)
+    # small products as broadcast-and-sums (see matmul_small): under vmap and reverse-mode
+    # differentiation these einsums also met an XLA shape-verifier error (jax 0.9.2)
+    own = mm(CinvT, Cinv)  # C_i^-T C_i^-1
+    K = mm(CinvT[:-1], jnp.swapaxes(M, 1, 2))  # C_i^-T M_i^T
 
     def bwd(S_next, inputs):
         own_i, K_i = inputs
-        S = own_i + K_i @ S_next @ K_i.T
+        S = own_i + mm(mm(K_i, S_next), K_i.T)
         S = 0.5 * (S + S.T)
         return S, S
 
     _, Ss = jax.lax.scan(bwd, own[-1], (own[:-1], K), reverse=True)
     return jnp.concatenate([Ss, own[-1][None]])
+
+
+def diag_sandwich(
+    chol: BlockCholesky, S: Float[Array, "F s s"], H: Float[Array, "F r r"]
+) -> Float[Array, "F s s"]:
+    """Diagonal blocks of ``A^-1 H A^-1`` for block-diagonal ``H`` (its blocks ``H_j``
+    (r <= s) act on the first r components of each state), in O(F s^3).
+
+    ``S``: the diagonal blocks of ``A^-1`` (:func:`diag_inverse`). The off-diagonal
+    blocks of ``A^-1`` are ``G_ij = J_i G_i+1,j`` (``i < j``, ``J_i = -C_i^-T M_i^T``), so
+    block i of the sandwich is ``S_i (H_i + P_i) S_i + N_i`` with the frames before i
+    summed forward, ``P_i+1 = J_i^T (H_i + P_i) J_i``, and those after summed backward,
+    ``N_i = J_i (S_i+1 H_i+1 S_i+1 + N_i+1) J_i^T``. This is the noise covariance of a
+    linear smoother's estimate (``A^-1 J^T W eps``), which 2F solves gave in O(F^2 s^2).
+    """
+    C, M = chol.C, chol.M
+    F, s, _ = C.shape
+    r = H.shape[-1]
+    Hs = jnp.zeros((F, s, s), C.dtype).at[:, :r, :r].set(H)
+    eye = jnp.eye(s, dtype=C.dtype)
+    Cinv = jax.vmap(lambda c: _tri(c, eye))(C[:-1])
+    Jt = -mm(M, Cinv)  # J_i^T, with J_i = -C_i^-T M_i^T (F-1, s, s)
+    J = jnp.swapaxes(Jt, 1, 2)
+
+    def fwd(P_i, inputs):
+        H_i, J_i, Jt_i = inputs
+        P_next = mm(mm(Jt_i, H_i + P_i), J_i)
+        return P_next, P_next
+
+    _, Ps = jax.lax.scan(fwd, jnp.zeros((s, s), C.dtype), (Hs[:-1], J, Jt))
+    P = jnp.concatenate([jnp.zeros((1, s, s), C.dtype), Ps])
+    own = mm(mm(S, Hs + P), S)
+    SHS = mm(mm(S, Hs), S)
+
+    def bwd(N_next, inputs):
+        SHS_next, J_i, Jt_i = inputs
+        N = mm(mm(J_i, SHS_next + N_next), Jt_i)
+        return N, N
+
+    _, Ns = jax.lax.scan(bwd, jnp.zeros((s, s), C.dtype), (SHS[1:], J, Jt), reverse=True)
+    N = jnp.concatenate([Ns, jnp.zeros((1, s, s), C.dtype)])
+    return own + N
 
 
 def logdet(chol: BlockCholesky) -> Float[Array, ""]:
