@@ -85,7 +85,7 @@ def _terms(P, x, times, pixel_sigma, order, process_psd):
     Pn = normalise_cameras(P)
     uv = project_points(Pn, x)
     ww = jnp.full(F, 1.0, dtype) / jnp.asarray(pixel_sigma, dtype) ** 2
-    H, g, c, _, J = gauss_newton_blocks(Pn, uv, ww, x)
+    H, g, c, _, _ = gauss_newton_blocks(Pn, uv, ww, x)
     tau = (times[-1] - times[0]) / (F - 1)  # the smoother's time unit
     A, Qinv = _transition(jnp.diff(times) / tau, order)
     qscale = tau ** (2 * order - 1)
