@@ -35,6 +35,7 @@ from __future__ import annotations
 
 import argparse
 import time
+from pathlib import Path
 
 import jax
 
@@ -106,19 +107,21 @@ MOCAP_SCALE = 0.25
 MOCAP_SECONDS = 8.0  # both takes are at least this long
 
 
-def scene_cell(scene: str, frames: int, starts: int):
+#: the shared reference data beside the checkout
+DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
+
+
+def scene_cell(scene: str, frames: int, starts: int, data: Path = DATA):
     """The built-in cell with the workpiece path of ``scene``: ``sim`` (the KR 60's smooth
     curve) or a motion-capture take's root path (scaled by :data:`MOCAP_SCALE`, centred
     on the built-in path's mean, over :data:`MOCAP_SECONDS`); None when the take is
-    absent (``../shared/data/cmu_bvh``)."""
-    from pathlib import Path
-
+    absent (``data/cmu_bvh``)."""
     from jaxtraj.sim import bvh_curve
 
     spec = example_cell(frames=frames, starts=starts)
     if scene == "sim":
         return spec
-    path = Path(__file__).resolve().parents[2] / "shared" / "data" / "cmu_bvh" / MOCAP[scene]
+    path = Path(data) / "cmu_bvh" / MOCAP[scene]
     if not path.exists():
         print(f"{path} not found: scene {scene} skipped", flush=True)
         return None

@@ -1,0 +1,38 @@
+"""The workpiece scenes of benchmarks/bench_design_joint.py --compare (the design itself is
+benchmarked, not tested here: its tests are in test_design_joint.py)."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+
+import bench_design_joint
+
+
+@pytest.mark.parametrize("scene", ["cmu131_01", "cmu131_03"])
+def test_motion_capture_scene_is_a_scaled_take_in_the_built_in_cell(shared_data, scene):
+    sim = bench_design_joint.scene_cell("sim", frames=20, starts=1)
+    spec = bench_design_joint.scene_cell(scene, frames=20, starts=1, data=shared_data)
+    x = spec.predicted
+    assert x.shape == (20, 3) and spec.times.shape == (20,)
+    assert spec.times[-1] == pytest.approx(bench_design_joint.MOCAP_SECONDS)
+    # centred where the built-in workpiece moves, and of a size the workpiece robot reaches
+    np.testing.assert_allclose(x.mean(axis=0), sim.predicted.mean(axis=0), atol=1e-9)
+    span = np.max(x.max(axis=0) - x.min(axis=0))
+    assert 0.4 < span < 1.0, span
+    # a walking take, not the built-in curve: the path differs from it
+    assert np.max(np.linalg.norm(x - sim.predicted, axis=1)) > 0.1
+    np.testing.assert_allclose(spec.camera_start, x[0] + [-0.9, 0.0, 0.35])
+
+
+def test_missing_take_is_skipped_and_unknown_scene_refused(tmp_path):
+    assert bench_design_joint.scene_cell("cmu131_01", frames=20, starts=1, data=tmp_path) is None
+    args = argparse.Namespace(scenes="sim,walk")
+    with pytest.raises(SystemExit, match="unknown scene 'walk'"):
+        bench_design_joint.compare(args)
