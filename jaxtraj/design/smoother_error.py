@@ -24,8 +24,8 @@ error has two parts, both exact for the linearised model:
 ``q`` is the one the estimator would choose: the minimiser of the expected marginal
 likelihood of the noisy pixels over :func:`jaxtraj.estimators.default_psd_grid` (the
 noise-free value plus the expected noise term ``-tr(D^-1 H)``), refined by a parabola in
-``log q``, held fixed for gradients. Everything is O(F) per trajectory
-and differentiable with respect to the cameras.
+``log q``, held fixed for gradients. Everything is O(F) per trajectory and differentiable
+with respect to the cameras.
 """
 
 from __future__ import annotations
