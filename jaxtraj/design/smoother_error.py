@@ -109,7 +109,7 @@ def _terms(P, x, times, pixel_sigma, order, process_psd):
     z = bt.solve(chol, b)
     bias2 = jnp.sum((z[:, :3] - x) ** 2, axis=1)
     # noise: the covariance of D^-1 J^T W eps is D^-1 H D^-1, its diagonal blocks in O(F)
-    cov = bt.diag_sandwich(chol, bt.diag_inverse(chol), H)
+    cov = bt.diag_sandwich(chol, H)
     noise_var = jnp.trace(cov[:, :3, :3], axis1=1, axis2=2)
     return bias2, noise_var, q / qscale
 

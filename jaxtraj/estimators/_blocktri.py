@@ -87,18 +87,19 @@ def solve(chol: BlockCholesky, b: Float[Array, "F s"]) -> Float[Array, "F s"]:
     return back_substitute(chol, jnp.concatenate([y0[None], ys]))
 
 
-def diag_inverse(chol: BlockCholesky) -> Float[Array, "F s s"]:
-    """The diagonal blocks of ``A^-1`` (selected inversion, O(F s^3))."""
+def _inverse_parts(chol: BlockCholesky) -> tuple[Array, Array]:
+    """``own_i = C_i^-T C_i^-1`` (F, s, s) and ``K_i = C_i^-T M_i^T`` (F-1, s, s): the
+    off-diagonal blocks of ``A^-1`` are ``G_ij = -K_i G_i+1,j`` (``i < j``)."""
     C, M = chol.C, chol.M
-    s = C.shape[-1]
-    eye = jnp.eye(s, dtype=C.dtype)
+    eye = jnp.eye(C.shape[-1], dtype=C.dtype)
     Cinv = jax.vmap(lambda c: _tri(c, eye))(C)  # C_i^-1
     CinvT = jnp.swapaxes(Cinv, 1, 2)
     # small products as broadcast-and-sums (see matmul_small): under vmap and reverse-mode
-    # differentiation these einsums also met an XLA shape-verifier error (jax 0.9.2)
-    own = mm(CinvT, Cinv)  # C_i^-T C_i^-1
-    K = mm(CinvT[:-1], jnp.swapaxes(M, 1, 2))  # C_i^-T M_i^T
+    # differentiation einsums here met an XLA shape-verifier error (jax 0.9.2)
+    return mm(CinvT, Cinv), mm(CinvT[:-1], jnp.swapaxes(M, 1, 2))
 
+
+def _diag_inverse(own: Array, K: Array) -> Array:
     def bwd(S_next, inputs):
         own_i, K_i = inputs
         S = own_i + mm(mm(K_i, S_next), K_i.T)
@@ -109,46 +110,47 @@ def diag_inverse(chol: BlockCholesky) -> Float[Array, "F s s"]:
     return jnp.concatenate([Ss, own[-1][None]])
 
 
-def diag_sandwich(
-    chol: BlockCholesky, S: Float[Array, "F s s"], H: Float[Array, "F r r"]
-) -> Float[Array, "F s s"]:
+def diag_inverse(chol: BlockCholesky) -> Float[Array, "F s s"]:
+    """The diagonal blocks of ``A^-1`` (selected inversion, O(F s^3))."""
+    return _diag_inverse(*_inverse_parts(chol))
+
+
+def diag_sandwich(chol: BlockCholesky, H: Float[Array, "F r r"]) -> Float[Array, "F s s"]:
     """Diagonal blocks of ``A^-1 H A^-1`` for block-diagonal ``H`` (its blocks ``H_j``
     (r <= s) act on the first r components of each state), in O(F s^3).
 
-    ``S``: the diagonal blocks of ``A^-1`` (:func:`diag_inverse`). The off-diagonal
-    blocks of ``A^-1`` are ``G_ij = J_i G_i+1,j`` (``i < j``, ``J_i = -C_i^-T M_i^T``), so
-    block i of the sandwich is ``S_i (H_i + P_i) S_i + N_i`` with the frames before i
-    summed forward, ``P_i+1 = J_i^T (H_i + P_i) J_i``, and those after summed backward,
-    ``N_i = J_i (S_i+1 H_i+1 S_i+1 + N_i+1) J_i^T``. This is the noise covariance of a
-    linear smoother's estimate (``A^-1 J^T W eps``), which 2F solves gave in O(F^2 s^2).
+    With ``S_i`` the diagonal blocks of ``A^-1`` (:func:`diag_inverse`) and its
+    off-diagonal blocks ``G_ij = -K_i G_i+1,j`` (``i < j``, ``K_i = C_i^-T M_i^T``), block
+    i of the sandwich is ``S_i (H_i + P_i) S_i + N_i`` with the frames before i summed
+    forward, ``P_i+1 = K_i^T (H_i + P_i) K_i``, and those after summed backward,
+    ``N_i = K_i (S_i+1 H_i+1 S_i+1 + N_i+1) K_i^T`` (the signs cancel in pairs). This is
+    the noise covariance of a linear smoother's estimate (``A^-1 J^T W eps``), which 2F
+    solves gave in O(F^2 s^2).
     """
-    C, M = chol.C, chol.M
-    F, s, _ = C.shape
+    own, K = _inverse_parts(chol)
+    S = _diag_inverse(own, K)
+    F, s, _ = S.shape
     r = H.shape[-1]
-    Hs = jnp.zeros((F, s, s), C.dtype).at[:, :r, :r].set(H)
-    eye = jnp.eye(s, dtype=C.dtype)
-    Cinv = jax.vmap(lambda c: _tri(c, eye))(C[:-1])
-    Jt = -mm(M, Cinv)  # J_i^T, with J_i = -C_i^-T M_i^T (F-1, s, s)
-    J = jnp.swapaxes(Jt, 1, 2)
+    Hs = jnp.zeros((F, s, s), S.dtype).at[:, :r, :r].set(H)
+    Kt = jnp.swapaxes(K, 1, 2)
+    zero = jnp.zeros((s, s), S.dtype)
 
     def fwd(P_i, inputs):
-        H_i, J_i, Jt_i = inputs
-        P_next = mm(mm(Jt_i, H_i + P_i), J_i)
+        H_i, K_i, Kt_i = inputs
+        P_next = mm(mm(Kt_i, H_i + P_i), K_i)
         return P_next, P_next
 
-    _, Ps = jax.lax.scan(fwd, jnp.zeros((s, s), C.dtype), (Hs[:-1], J, Jt))
-    P = jnp.concatenate([jnp.zeros((1, s, s), C.dtype), Ps])
-    own = mm(mm(S, Hs + P), S)
+    _, Ps = jax.lax.scan(fwd, zero, (Hs[:-1], K, Kt))
+    P = jnp.concatenate([zero[None], Ps])
     SHS = mm(mm(S, Hs), S)
 
     def bwd(N_next, inputs):
-        SHS_next, J_i, Jt_i = inputs
-        N = mm(mm(J_i, SHS_next + N_next), Jt_i)
+        SHS_next, K_i, Kt_i = inputs
+        N = mm(mm(K_i, SHS_next + N_next), Kt_i)
         return N, N
 
-    _, Ns = jax.lax.scan(bwd, jnp.zeros((s, s), C.dtype), (SHS[1:], J, Jt), reverse=True)
-    N = jnp.concatenate([Ns, jnp.zeros((1, s, s), C.dtype)])
-    return own + N
+    _, Ns = jax.lax.scan(bwd, zero, (SHS[1:], K, Kt), reverse=True)
+    return mm(mm(S, Hs + P), S) + jnp.concatenate([Ns, zero[None]])
 
 
 def logdet(chol: BlockCholesky) -> Float[Array, ""]:
