@@ -304,6 +304,27 @@ def _assemble(P, uv, basis, weights, penalty):
     return N, (basis.T @ Qtq).reshape(-1)
 
 
+def _solve_refined(P, uv, basis, weights, N, b, penalty, refine):
+    """Factorise ``N`` and solve for the flattened coefficients with ``refine`` steps of
+    iterative refinement; returns ``(beta, W, d, Q)`` (the factor of :func:`_factorise`,
+    reusable for covariances, and the frames' ray constraints). ``uv`` must be zero where
+    the weight is."""
+    k = basis.shape[1]
+    p3 = P[:, 2, :]
+    rows = P[:, :2, :] - uv[:, :, None] * p3[:, None, :]  # (F, 2, 4)
+    Q, q = rows[:, :, :3], -rows[:, :, 3]
+    W, d = _factorise(N)
+    beta = _solve_with(W, d, b)
+    for _ in range(refine):
+        T = basis @ beta.reshape(k, 3)
+        r = (q - jnp.sum(Q * T[:, None, :], axis=2)) * weights[:, None]  # weighted residual
+        rhs = (basis.T @ jnp.sum(Q * r[:, :, None], axis=1)).reshape(-1)
+        if penalty is not None:
+            rhs = rhs - jnp.repeat(penalty, 3) * beta
+        beta = beta + _solve_with(W, d, rhs)
+    return beta, W, d, Q
+
+
 def _finish(P, uv, basis, weights, N, b, max_gain, penalty, refine, diagnostics):
     """Factorise, solve, refine and judge one point from its assembled normal equations."""
     k = basis.shape[1]
@@ -312,26 +333,9 @@ def _finish(P, uv, basis, weights, N, b, max_gain, penalty, refine, diagnostics)
     observed = weights > 0
     finite = jnp.all(jnp.isfinite(uv), axis=1) | ~observed
     uv = jnp.where(observed[:, None], uv, 0.0)
-    p3 = P[:, 2, :]
-    rows = P[:, :2, :] - uv[:, :, None] * p3[:, None, :]  # (F, 2, 4)
-    Q, q = rows[:, :, :3], -rows[:, :, 3]
     if penalty is not None:
         pen3 = jnp.repeat(penalty, 3)
-
-    W, d = _factorise(N)
-
-    def solve(rhs):
-        return _solve_with(W, d, rhs)
-
-    beta = solve(b)
-    for _ in range(refine):
-        T = basis @ beta.reshape(k, 3)
-        r = (q - jnp.sum(Q * T[:, None, :], axis=2)) * weights[:, None]  # weighted residual
-        rhs = (basis.T @ jnp.sum(Q * r[:, :, None], axis=1)).reshape(-1)
-        if penalty is not None:
-            rhs = rhs - pen3 * beta
-        beta = beta + solve(rhs)
-
+    beta, W, d, Q = _solve_refined(P, uv, basis, weights, N, b, penalty, refine)
     coeffs = beta.reshape(k, 3)
     points = basis @ coeffs
 

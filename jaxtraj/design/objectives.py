@@ -24,8 +24,8 @@ from jaxtyping import Array, ArrayLike, Float
 
 from ..analysis import reconstructibility
 from ..basis import DCTBasis
-from ..estimators.covariance import dct_covariance
-from ..solve import reconstruct
+from ..estimators.covariance import _pixel_blocks, _sandwich
+from ..solve import _assemble, _kron_sum, _solve_refined, reconstruct
 from .path import CameraPathModel
 
 __all__ = [
@@ -47,12 +47,25 @@ def project_points(P: Float[Array, "F 3 4"], X: Float[Array, "F 3"]) -> Float[Ar
 
 
 def _frame_errors(P, x, basis, pixel_sigma):
-    """(F,) expected squared error per frame: noise-free error^2 plus the noise variance."""
+    """(F,) expected squared error per frame: noise-free error^2 plus the noise variance.
+
+    The reconstruction (:func:`jaxtraj.reconstruct`, one refinement step) and its
+    first-order covariance (:func:`jaxtraj.estimators.dct_covariance`) share one
+    factorisation of the normal matrix: in the design's gradient the factorisation and its
+    adjoint are the dearest part."""
+    F, k = basis.shape
     uv = project_points(P, x)
-    rec = reconstruct(P, uv, basis, diagnostics=False)
-    bias2 = jnp.sum((rec.points - x) ** 2, axis=-1)
-    cov = dct_covariance(P, uv, basis, rec.coeffs, pixel_sigma=pixel_sigma)
-    return bias2 + jnp.trace(cov.points, axis1=-2, axis2=-1)
+    w = jnp.ones(F, P.dtype)
+    N, b = _assemble(P, uv, basis, w, None)
+    beta, W, d, _ = _solve_refined(P, uv, basis, w, N, b, None, 1)
+    points = basis @ beta.reshape(k, 3)
+    bias2 = jnp.sum((points - x) ** 2, axis=-1)
+    sig2 = jnp.broadcast_to(jnp.asarray(pixel_sigma, P.dtype) ** 2, (F,))
+    cov = _sandwich(W, d, _kron_sum(basis, _pixel_blocks(P, uv, points, w, sig2)))
+    # trace of each frame's (phi_i^T (x) I_3) Cov (phi_i (x) I_3)
+    C = jnp.trace(cov.reshape(k, 3, k, 3), axis1=1, axis2=3)
+    traces = jnp.einsum("fu,uv,fv->f", basis, C, basis)
+    return bias2 + traces
 
 
 def _sample_errors(P, samples, basis, pixel_sigma):

@@ -123,16 +123,7 @@ def dct_covariance(
     uv = jnp.where(obs[:, None], uv, 0.0)
     N, _ = normal_equations(P, uv, basis, w)
     T = basis @ coeffs
-    Th = jnp.concatenate([T, jnp.ones((F, 1), P.dtype)], axis=1)
-    rows = P[:, :2, :] - uv[:, :, None] * P[:, 2:3, :]
-    Q, q = rows[:, :, :3], -rows[:, :, 3]
-    r = q - jnp.einsum("fai,fi->fa", Q, T)
-    d = jnp.einsum("fj,fj->f", P[:, 2, :], Th)
-    G = w[:, None, None] * (
-        d[:, None, None] * jnp.swapaxes(Q, 1, 2) - P[:, 2, :3, None] * r[:, None, :]
-    )
-    sig2 = jnp.broadcast_to(sig**2, (F,))
-    blocks = sig2[:, None, None] * jnp.einsum("fia,fja->fij", G, G)
+    blocks = _pixel_blocks(P, uv, T, w, jnp.broadcast_to(sig**2, (F,)))
     if pose_cov is not None:
 
         def frame_jac(P_i, uv_i, T_i, w_i):
@@ -144,13 +135,32 @@ def dct_covariance(
 
         Gp = jax.vmap(frame_jac)(P, uv, T, w)  # (F, 3, 6)
         blocks = blocks + jnp.einsum("fia,fab,fjb->fij", Gp, pose_cov, Gp)
-    S = _kron_sum(basis, blocks)
     dd = jax.lax.rsqrt(jnp.maximum(jnp.diag(N), jnp.finfo(P.dtype).tiny))
     # N^-1 = D W^T W D with W the inverse Cholesky factor of the equilibrated D N D; no
     # LAPACK call (batched over points or design samples it would be a batched LAPACK
     # call, which deadlocked on 2 cores with jaxlib 0.10, see jaxtraj._spd)
     W = inverse_cholesky(N * dd[:, None] * dd[None, :])
+    cov = _sandwich(W, dd, _kron_sum(basis, blocks))
+    return ReconstructionCovariance(coeffs=cov, points=points_covariance(basis, cov))
+
+
+def _pixel_blocks(P, uv, T, w, sig2):
+    """(F, 3, 3) per-frame ``G_i Sigma_i G_i^T`` of the pixel noise (module notes) at the
+    points ``T`` (F, 3), with ``Sigma_i = sig2_i I`` and ``uv`` zero where ``w`` is."""
+    F = P.shape[0]
+    Th = jnp.concatenate([T, jnp.ones((F, 1), P.dtype)], axis=1)
+    rows = P[:, :2, :] - uv[:, :, None] * P[:, 2:3, :]
+    Q, q = rows[:, :, :3], -rows[:, :, 3]
+    r = q - jnp.einsum("fai,fi->fa", Q, T)
+    d = jnp.einsum("fj,fj->f", P[:, 2, :], Th)
+    G = w[:, None, None] * (
+        d[:, None, None] * jnp.swapaxes(Q, 1, 2) - P[:, 2, :3, None] * r[:, None, :]
+    )
+    return sig2[:, None, None] * jnp.einsum("fia,fja->fij", G, G)
+
+
+def _sandwich(W, dd, S):
+    """``N^-1 S N^-1`` (symmetrised) from ``N^-1 = D W^T W D`` (``dd`` the diagonal of D)."""
     WD = W * dd[None, :]
     cov = WD.T @ (WD @ S @ WD.T) @ WD
-    cov = 0.5 * (cov + cov.T)
-    return ReconstructionCovariance(coeffs=cov, points=points_covariance(basis, cov))
+    return 0.5 * (cov + cov.T)
