@@ -31,10 +31,9 @@ from .joint_path import (
     joint_constraint_values,
     projection_matrices,
 )
-from .objectives import _sample_errors, expected_errors_for_cameras
-from .pose_error import _checked_layout, _sample_covariances, expected_pose_errors_for_cameras
+from .objectives import _metrics, _sample_errors
+from .pose_error import _checked_layout, _pose_metrics, _sample_covariances
 from .smoother_error import _frame_errors2 as _smoother_frame_errors2
-from .smoother_error import expected_smoother_errors_for_cameras
 
 __all__ = [
     "JointPathDesign",
@@ -118,33 +117,33 @@ class _Problem(eqx.Module):
         T_w_c = camera_poses(self.cell, self.model.joints_at_images(theta))
         return projection_matrices(self.cell, T_w_c)
 
-    def worst_frame_error(self, theta):
-        """``max sqrt(E|x_hat - x|^2)`` over the samples and frames [m] (reports only)."""
+    def _frame_terms(self, theta):
+        """Per sample and frame: expected squared errors (S, F), or for the pose estimator
+        the point covariances (S, F, 3, 3)."""
         P = self._cameras(theta)
         if self.estimator == "dct":
-            e2 = _sample_errors(P, self.samples, self.basis, self.pixel_sigma)
-        elif self.estimator == "pose":
-            covs = _sample_covariances(
-                P, self.samples, self.R_w_o, self.layout, self.point, self.pixel_sigma
-            )
-            e2 = jnp.trace(covs, axis1=-2, axis2=-1)
-        else:
-            order = int(self.estimator[-1])
-            e2 = _smoother_frame_errors2(P, self.samples, self.model.times, self.pixel_sigma, order)
-        return jnp.sqrt(jnp.max(jnp.where(jnp.isnan(e2), jnp.inf, e2)))
-
-    def errors(self, theta):
-        P = self._cameras(theta)
-        if self.estimator == "dct":
-            return expected_errors_for_cameras(P, self.samples, self.basis, self.pixel_sigma)
+            return _sample_errors(P, self.samples, self.basis, self.pixel_sigma)
         if self.estimator == "pose":
-            return expected_pose_errors_for_cameras(
+            return _sample_covariances(
                 P, self.samples, self.R_w_o, self.layout, self.point, self.pixel_sigma
             )
         order = int(self.estimator[-1])
-        return expected_smoother_errors_for_cameras(
-            P, self.samples, self.model.times, self.pixel_sigma, order
-        )
+        return _smoother_frame_errors2(P, self.samples, self.model.times, self.pixel_sigma, order)
+
+    def errors(self, theta):
+        """``(rms, mean)`` expected errors [m] of the estimator for the path ``theta``."""
+        return self._errors_from(self._frame_terms(theta))
+
+    def _errors_from(self, terms):
+        return _pose_metrics(terms) if self.estimator == "pose" else _metrics(terms)
+
+    def report_errors(self, theta):
+        """``(rms, mean, worst)`` [m]: the worst is ``max sqrt(E|x_hat - x|^2)`` over the
+        samples and frames (reported, not designed for); one evaluation of the frames."""
+        terms = self._frame_terms(theta)
+        e2 = jnp.trace(terms, axis1=-2, axis2=-1) if self.estimator == "pose" else terms
+        worst = jnp.sqrt(jnp.max(jnp.where(jnp.isnan(e2), jnp.inf, e2)))
+        return (*self._errors_from(terms), worst)
 
     def objective(self, theta):
         if self.kind == "eta":  # maximise the geometric mean of eta over the samples
@@ -213,13 +212,13 @@ def _evaluate(thetas, stationarity, lams, rounds, problem, feasibility_tol, stat
         )
         viol = jnp.stack([jnp.max(values[name]) for name in JOINT_CONSTRAINTS])
         worst = jnp.maximum(jnp.max(viol), 0.0)
-        rms, mean = problem.errors(theta)
+        rms, mean, worst_error = problem.report_errors(theta)
         feasible = (worst <= feasibility_tol) & jnp.isfinite(rms)
         return JointPathDesign(
             theta=theta,
             expected_error=rms,
             expected_mean_error=mean,
-            expected_worst_error=problem.worst_frame_error(theta),
+            expected_worst_error=worst_error,
             violation=viol,
             max_violation=worst,
             stationarity=stat,

@@ -126,9 +126,13 @@ def expected_pose_errors_for_cameras(
             f"samples: expected shape (S, {P.shape[0]}, 3) (one point per camera), got "
             f"{samples.shape}"
         )
-    covs = _sample_covariances(P, samples, R_w_o, layout, point, pixel_sigma)
-    e2 = jnp.trace(covs, axis1=-2, axis2=-1)
-    rms = jnp.sqrt(jnp.mean(e2))
+    return _pose_metrics(_sample_covariances(P, samples, R_w_o, layout, point, pixel_sigma))
+
+
+def _pose_metrics(covs):
+    """``(rms, mean)`` [m] of :func:`expected_pose_errors_for_cameras` from the (S, F, 3, 3)
+    covariances (+inf where they are NaN)."""
+    rms = jnp.sqrt(jnp.mean(jnp.trace(covs, axis1=-2, axis2=-1)))
     mean = jnp.mean(gaussian_mean_norm(covs))
     return jnp.where(jnp.isnan(rms), jnp.inf, rms), jnp.where(jnp.isnan(mean), jnp.inf, mean)
 
