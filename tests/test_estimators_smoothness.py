@@ -238,11 +238,15 @@ def test_chosen_q_gives_the_fixed_q_result_even_with_a_slow_camera():
         )
         # a slow camera: the depth along the rays is the prior's, not the data's
         assert int(chosen.status[i]) == int(fixed.status) == jt.Status.DEGENERATE
-        # 0.1 mm: the depth is the ill-conditioned prior's, so rounding differs by jax
-        # version (up to 0.1 mm and 0.007 px between the batched and the single solve on
-        # jax 0.10.2); the bug this guards against put estimates pixels off, or NaN
-        np.testing.assert_allclose(chosen.points[i], fixed.points, atol=1e-4)
-        assert float(chosen.rms_px[i]) == pytest.approx(float(fixed.rms_px), abs=0.02)
+        # The Gauss-Newton system here is numerically singular (its pivot at rounding
+        # level, one reason for DEGENERATE), so rounding moves the solution along the
+        # singular direction: the batched and the single solve agree to 1e-9 m at XLA's
+        # default optimisation level and differ by 0.35 mm (0.17 against 0.22 px) at the
+        # tests' -O0 on an AMD EPYC. The bug this guards against (Gauss-Newton from the
+        # mid-grid depths) ended 3-45 mm apart or 0.43-0.54 px off on these two tracks.
+        np.testing.assert_allclose(chosen.points[i], fixed.points, atol=1e-3)
+        assert np.all(np.isfinite(chosen.points[i]))
+        assert max(float(chosen.rms_px[i]), float(fixed.rms_px)) < 0.35  # pixel noise 0.4
 
 
 def test_missing_frames_and_robust_loss(rng):
