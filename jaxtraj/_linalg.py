@@ -4,7 +4,9 @@ Inside a ``lax.scan`` a LAPACK call is a library call that XLA:CPU must dispatch
 own at every step. A loop that makes no such call can be compiled into one native kernel
 (see :mod:`jaxtraj._xla`), which for the small blocks of the smoothers and filters is
 several times faster. Results equal LAPACK's up to rounding. The Python loops unroll into
-one step per column or row, so keep these for small, static sizes.
+one step per column or row, so keep these for small, static sizes. Products are written as
+broadcast-and-sums, which stay fused loops under ``vmap`` (``@`` would become batched
+products of tiny matrices).
 """
 
 from __future__ import annotations
@@ -22,7 +24,7 @@ def cholesky_small(A: Float[Array, "s s"]) -> Float[Array, "s s"]:
     rows = jnp.arange(s)
     L = jnp.zeros_like(A)
     for j in range(s):
-        v = A[:, j] - L @ L[j]  # columns >= j of L are still zero
+        v = A[:, j] - jnp.sum(L * L[j], axis=1)  # columns >= j of L are still zero
         d = jnp.sqrt(v[j])
         L = L.at[:, j].set(jnp.where(rows > j, v / d, jnp.where(rows == j, d, 0.0)))
     return L
@@ -35,7 +37,8 @@ def solve_triangular_small(C: Float[Array, "s s"], B: Array, *, trans: int = 0) 
     M = C if trans == 0 else C.T
     x = jnp.zeros_like(B)
     for i in range(s) if trans == 0 else range(s - 1, -1, -1):
-        x = x.at[i].set((B[i] - M[i] @ x) / M[i, i])  # unknown rows of x are still zero
+        row = M[i].reshape((s,) + (1,) * (x.ndim - 1))
+        x = x.at[i].set((B[i] - jnp.sum(row * x, axis=0)) / M[i, i])  # unknown rows are 0
     return x
 
 

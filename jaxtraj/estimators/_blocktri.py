@@ -45,8 +45,8 @@ def factor_forward(
         C_prev, y_prev = carry
         D_i, E_prev, b_i = inputs
         M = _tri(C_prev, E_prev.T).T  # M = E C_prev^-T
-        C = _cholesky(D_i - M @ M.T)
-        y = _tri(C, b_i - M @ y_prev)
+        C = _cholesky(D_i - mm(M, M.T))
+        y = _tri(C, b_i - jnp.sum(M * y_prev, axis=-1))
         return (C, y), (C, M, y)
 
     _, (Cs, Ms, ys) = jax.lax.scan(step, (C0, y0), (D[1:], E, b[1:]))
@@ -61,7 +61,7 @@ def back_substitute(chol: BlockCholesky, y: Float[Array, "F s"]) -> Float[Array,
 
     def bwd(x_next, inputs):
         C_i, M_i, y_i = inputs
-        x = _tri(C_i, y_i - M_i.T @ x_next, trans=1)
+        x = _tri(C_i, y_i - jnp.sum(M_i * x_next[:, None], axis=0), trans=1)
         return x, x
 
     _, xs = jax.lax.scan(bwd, xl, (C[:-1], M, y[:-1]), reverse=True)
@@ -80,7 +80,7 @@ def solve(chol: BlockCholesky, b: Float[Array, "F s"]) -> Float[Array, "F s"]:
 
     def fwd(y_prev, inputs):
         C_i, M_prev, b_i = inputs
-        y = _tri(C_i, b_i - M_prev @ y_prev)
+        y = _tri(C_i, b_i - jnp.sum(M_prev * y_prev, axis=-1))
         return y, y
 
     _, ys = jax.lax.scan(fwd, y0, (C[1:], M, b[1:]))

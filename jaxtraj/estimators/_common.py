@@ -26,7 +26,7 @@ def normalise_cameras(P: Float[Array, "F 3 4"]) -> Float[Array, "F 3 4"]:
 
 
 def homogeneous(P: Float[Array, "F 3 4"], X: Float[Array, "F 3"]) -> Float[Array, "F 3"]:
-    return jnp.einsum("fij,fj->fi", P[:, :, :3], X) + P[:, :, 3]
+    return jnp.sum(P[:, :, :3] * X[:, None, :], axis=2) + P[:, :, 3]
 
 
 def linearise(P, uv, X):
@@ -45,9 +45,11 @@ def gauss_newton_blocks(P, uv, ww, X):
     weighted by ``ww`` (F,) [1/px^2]: ``H`` (F, 3, 3), ``g`` (F, 3), ``c`` with
     ``J p ~ J X - e``, and ``e``, ``J`` themselves."""
     e, J, _ = linearise(P, uv, X)
-    H = ww[:, None, None] * jnp.einsum("fai,faj->fij", J, J)
-    target = jnp.einsum("fai,fi->fa", J, X) - e
-    g = ww[:, None] * jnp.einsum("fai,fa->fi", J, target)
+    # broadcast-and-sums: under vmap over points, einsums over axes of size 2-3 become
+    # batched products of tiny matrices, which XLA:CPU runs far slower than a fused loop
+    H = ww[:, None, None] * jnp.sum(J[:, :, :, None] * J[:, :, None, :], axis=1)
+    target = jnp.sum(J * X[:, None, :], axis=2) - e
+    g = ww[:, None] * jnp.sum(J * target[:, :, None], axis=1)
     c = jnp.sum(ww * jnp.sum(target * target, axis=1))
     return H, g, c, e, J
 

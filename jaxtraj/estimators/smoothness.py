@@ -44,7 +44,7 @@ import numpy as np
 from jaxtyping import Array, ArrayLike, Float, Int
 
 from .._checks import check_shape, check_tracks, is_concrete
-from .._linalg import solve_spd_small
+from .._linalg import matmul_small, solve_spd_small
 from ..solve import Status
 from . import _blocktri as bt
 from ._common import (
@@ -161,9 +161,10 @@ def _assemble(H, g, A, Qinv, inv_q, order, start=None):
     Ak = jax.vmap(lambda a: jnp.kron(a, eye3))(A)
     Wk = jax.vmap(lambda w: jnp.kron(w, eye3))(Qinv) * inv_q
     D = jnp.zeros((F, s, s), H.dtype).at[:, :3, :3].set(H)
-    D = D.at[:-1].add(jnp.einsum("fji,fjk,fkl->fil", Ak, Wk, Ak))
+    WA = matmul_small(Wk, Ak)  # products of small blocks as broadcast-and-sums (vmap)
+    D = D.at[:-1].add(matmul_small(jnp.swapaxes(Ak, 1, 2), WA))
     D = D.at[1:].add(Wk)
-    E = -jnp.einsum("fij,fjk->fik", Wk, Ak)
+    E = -WA
     b = jnp.zeros((F, s), H.dtype).at[:, :3].set(g)
     if start is not None:
         L0, m0 = start
@@ -414,8 +415,8 @@ def _smooth(
         start = (info, start_mean.reshape(-1) / unit)
 
     Qa, qa = algebraic_blocks(Pn, uv)
-    QtQ = jnp.einsum("fai,faj->fij", Qa, Qa)
-    Qtq = jnp.einsum("fai,fa->fi", Qa, qa)
+    QtQ = jnp.sum(Qa[:, :, :, None] * Qa[:, :, None, :], axis=1)
+    Qtq = jnp.sum(Qa * qa[:, :, None], axis=1)
 
     def data_cost(X):
         e, _, _ = linearise(Pn, uv, X)
@@ -442,7 +443,7 @@ def _smooth(
         x, _, piv = _solve(
             ww[:, None, None] * QtQ, ww[:, None] * Qtq, A, Qinv, 1 / q, order, False, start
         )
-        z = jnp.einsum("fi,fi->f", Pn[:, 2, :3], x[:, :3]) + Pn[:, 2, 3]
+        z = jnp.sum(Pn[:, 2, :3] * x[:, :3], axis=1) + Pn[:, 2, 3]
         # a depth near zero (an estimate at the camera) must not dominate the weights
         z = jnp.maximum(jnp.abs(z), 0.1 * jnp.median(jnp.abs(z)) + jnp.finfo(dtype).tiny)
         return x, z, robust_weight(x[:, :3]), piv
@@ -461,9 +462,9 @@ def _smooth(
     def ubre(q, H, g, e, J, X0):
         """Unbiased risk ``RSS / sigma^2 + 2 edf - n``, edf and the solve at ``q``."""
         x, cov, pivot = _solve(H, g, A, Qinv, 1 / q, order, True, start)
-        r = e + jnp.einsum("fai,fi->fa", J, x[:, :3] - X0)
+        r = e + jnp.sum(J * (x[:, None, :3] - X0[:, None, :]), axis=2)
         rss = jnp.sum(w * omega * jnp.sum(r * r, axis=1)) / sigma2
-        edf = jnp.einsum("fij,fji->", H, cov[:, :3, :3])
+        edf = jnp.sum(H * jnp.swapaxes(cov[:, :3, :3], 1, 2))
         return rss + 2.0 * edf - 2.0 * n_obs, edf, cov, pivot
 
     if process_psd is None:
