@@ -36,3 +36,19 @@ def test_missing_take_is_skipped_and_unknown_scene_refused(tmp_path):
     args = argparse.Namespace(scenes="sim,walk")
     with pytest.raises(SystemExit, match="unknown scene 'walk'"):
         bench_design_joint.compare(args)
+
+
+def test_unknown_estimator_refused():
+    args = argparse.Namespace(scenes="sim", estimators="temporal,pnp")
+    with pytest.raises(SystemExit, match="unknown 'pnp'"):
+        bench_design_joint.compare(args)
+
+
+def test_random_camera_pose_is_the_inverse_of_its_projection():
+    spec = bench_design_joint.scene_cell("sim", frames=20, starts=1)
+    P, T_w_c = (np.asarray(a) for a in bench_design_joint.random_camera(spec))
+    assert P.shape == (20, 3, 4) and T_w_c.shape == (20, 4, 4)
+    T_c_w = np.linalg.inv(T_w_c)
+    np.testing.assert_allclose(P, np.asarray(spec.K) @ T_c_w[:, :3, :], atol=1e-9)
+    # the paper's camera jumps between images (why no robot can follow it)
+    assert np.median(np.linalg.norm(np.diff(T_w_c[:, :3, 3], axis=0), axis=1)) > 0.2
