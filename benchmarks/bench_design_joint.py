@@ -179,13 +179,25 @@ def random_camera(spec):
     return P, T_w_c.at[:, :3, 3].set(path.centres)
 
 
+def use_known_layout(spec):
+    """Design ``spec`` for the known-layout pose: the simulated workpiece's six marker
+    centres and its assembly point."""
+    spec.method = "pose"
+    spec.layout, spec.point = example_layout()
+
+
+def start_weaves(res, spec, starts):
+    """The design's start weaves by name (the smooth heuristics the KR 16 executes)."""
+    weaves = jnp.asarray(_initial_guesses(res["model"], res["chain"], starts, spec.seed))
+    return {f"joint weave {i} (start {i})": theta for i, theta in enumerate(weaves)}
+
+
 def compare_pose_scene(args, scene, spec):
     """Known-layout pose on one scene: the path designed for it, the start weaves and the
     random discontinuous camera, each measured by Monte-Carlo of OpenCV's SQPnP + LM
     (``--draws`` per image, the predicted trajectory); returns (scene, designed, best
     weave, random) mean errors [mm] of the followed point."""
-    spec.method, spec.order = "pose", 2
-    spec.layout, spec.point = example_layout()
+    use_known_layout(spec)
     res = design_cell(spec, inner_steps=args.inner_steps)
     best, designs = res["best"], res["designs"]
     print(
@@ -196,9 +208,8 @@ def compare_pose_scene(args, scene, spec):
     )
     model, cell = res["model"], res["cell"]
     layout = res["layout"]
-    weaves = jnp.asarray(_initial_guesses(model, res["chain"], args.starts, spec.seed))
     paths = {"designed for the known-layout pose": best.theta}
-    paths.update({f"joint weave {i} (start {i})": th for i, th in enumerate(weaves)})
+    paths.update(start_weaves(res, spec, args.starts))
     rows, measured = [], {}
     for name, theta in paths.items():
         ev = evaluate_joint_path(
@@ -265,9 +276,7 @@ def compare_scene(args, scene, spec):
     model, cell, samples = res["model"], res["cell"], res["samples"]
     times = jnp.asarray(spec.times)
     paths = {f"designed for {e}": r["best"].theta for e, r in results.items()}
-    weaves = jnp.asarray(_initial_guesses(model, res["chain"], args.starts, spec.seed))
-    for i, theta in enumerate(weaves):
-        paths[f"joint weave {i} (start {i})"] = theta
+    paths.update(start_weaves(res, spec, args.starts))
     measured = {}
     for name, theta in paths.items():
         thetas = jnp.asarray(theta)[None]
@@ -351,8 +360,7 @@ def main(argv: list[str] | None = None) -> int:
         return compare(args)
     spec = example_cell(frames=args.frames, starts=args.starts)
     if args.estimator == "pose":
-        spec.method = "pose"
-        spec.layout, spec.point = example_layout()
+        use_known_layout(spec)
     elif args.estimator != "dct":
         spec.method, spec.order = "smoother", int(args.estimator[-1])
     res = design_cell(spec, inner_steps=args.inner_steps)

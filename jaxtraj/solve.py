@@ -315,12 +315,13 @@ def _solve_refined(P, uv, basis, weights, N, b, penalty, refine):
     Q, q = rows[:, :, :3], -rows[:, :, 3]
     W, d = _factorise(N)
     beta = _solve_with(W, d, b)
+    pen3 = None if penalty is None else jnp.repeat(penalty, 3)
     for _ in range(refine):
         T = basis @ beta.reshape(k, 3)
         r = (q - jnp.sum(Q * T[:, None, :], axis=2)) * weights[:, None]  # weighted residual
         rhs = (basis.T @ jnp.sum(Q * r[:, :, None], axis=1)).reshape(-1)
-        if penalty is not None:
-            rhs = rhs - jnp.repeat(penalty, 3) * beta
+        if pen3 is not None:
+            rhs = rhs - pen3 * beta
         beta = beta + _solve_with(W, d, rhs)
     return beta, W, d, Q
 

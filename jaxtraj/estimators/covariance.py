@@ -25,8 +25,7 @@ import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
 from .._checks import check_shape
-from .._spd import inverse_cholesky
-from ..solve import _kron_sum, normal_equations
+from ..solve import _factorise, _kron_sum, normal_equations
 from ._common import as_float, validate_track
 
 __all__ = ["ReconstructionCovariance", "dct_covariance", "points_covariance"]
@@ -135,11 +134,9 @@ def dct_covariance(
 
         Gp = jax.vmap(frame_jac)(P, uv, T, w)  # (F, 3, 6)
         blocks = blocks + jnp.einsum("fia,fab,fjb->fij", Gp, pose_cov, Gp)
-    dd = jax.lax.rsqrt(jnp.maximum(jnp.diag(N), jnp.finfo(P.dtype).tiny))
-    # N^-1 = D W^T W D with W the inverse Cholesky factor of the equilibrated D N D; no
-    # LAPACK call (batched over points or design samples it would be a batched LAPACK
-    # call, which deadlocked on 2 cores with jaxlib 0.10, see jaxtraj._spd)
-    W = inverse_cholesky(N * dd[:, None] * dd[None, :])
+    # N^-1 from the solver's own factor (jaxtraj.solve._factorise: no LAPACK call, which
+    # batched over points or design samples deadlocked on 2 cores with jaxlib 0.10)
+    W, dd = _factorise(N)
     cov = _sandwich(W, dd, _kron_sum(basis, blocks))
     return ReconstructionCovariance(coeffs=cov, points=points_covariance(basis, cov))
 
