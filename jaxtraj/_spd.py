@@ -7,7 +7,8 @@ runs batched CPU LAPACK calls on XLA's thread pool, where small ones got slower 
 solves were seen to hang on 2 cores (jax-ml/jax#36927); nothing here makes such a call.
 
 * :func:`inverse_cholesky` - ``W = L^-1`` of ``A = L L^T`` by bordering, so that every
-  later solve is two triangular matrix-vector products.
+  later solve is two triangular matrix-vector products; its derivative is an analytic
+  rule (matrix products), not the bordering steps' own.
 * :func:`top_eigenvalue` - the largest eigenvalue of a symmetric positive semi-definite
   operator given as a matrix-vector product: a few Lanczos steps with full
   re-orthogonalisation and a Sturm bisection of the small tridiagonal matrix. Its result
@@ -103,6 +104,7 @@ def _blocked(A):
     return W
 
 
+@jax.custom_jvp
 def inverse_cholesky(A: Float[Array, "n n"]) -> Float[Array, "n n"]:
     """Lower-triangular ``W = L^-1`` with ``A = L L^T`` (A symmetric positive definite).
 
@@ -112,11 +114,32 @@ def inverse_cholesky(A: Float[Array, "n n"]) -> Float[Array, "n n"]:
     Pivots below ``eps * A_ii`` are clamped there (singular input: huge, finite ``W``).
     Up to :data:`UNROLL_MAX` rows the steps are unrolled (about ``2 n^3 / 3``
     multiply-adds); larger matrices go by blocks of rows (matrix products, about
-    ``2 n^3 / 3`` too, see :func:`_blocked`). Differentiable.
+    ``2 n^3 / 3`` too, see :func:`_blocked`).
+
+    Differentiable in forward and reverse mode by an analytic rule (a custom JVP, three
+    matrix products; see :func:`_inverse_cholesky_jvp`), not through the bordering steps
+    (batched 36 x 36 factors: gradient 31 instead of 450 us each, compiled 3x faster). At
+    a clamped pivot the derivative is that of the exact factor (huge).
     """
     if A.shape[-1] <= UNROLL_MAX:
         return _unrolled(A, jnp.diagonal(A))
     return _blocked(A)
+
+
+@inverse_cholesky.defjvp
+def _inverse_cholesky_jvp(primals, tangents):
+    # With X = W dL (lower triangular), W dA W^T = X + X^T, so X = Phi(W dA W^T) (the
+    # lower triangle, diagonal halved) and dW = -W dL W = -X W: three matrix products
+    # instead of differentiating through the n bordering steps (whose derivative cost
+    # 10-20x the factor and most of its compile time). A symmetric input is assumed; the
+    # tangent is symmetrised.
+    (A,), (dA,) = primals, tangents
+    W = inverse_cholesky(A)
+    dA = 0.5 * (dA + jnp.swapaxes(dA, -1, -2))
+    S = W @ dA @ W.T
+    n = A.shape[-1]
+    phi = jnp.tril(jnp.ones((n, n), A.dtype), -1) + 0.5 * jnp.eye(n, dtype=A.dtype)
+    return W, -(S * phi) @ W
 
 
 def _sturm_top(alpha: Array, beta: Array, iters: int) -> Array:

@@ -1,5 +1,6 @@
 """The LAPACK-free SPD algebra (jaxtraj._spd): the inverse Cholesky factor, unrolled up to
-UNROLL_MAX rows and by blocks beyond, against NumPy; singular input; vmap, jit and grad."""
+UNROLL_MAX rows and by blocks beyond, against NumPy; singular input; vmap, jit, and its
+analytic derivative against differences."""
 
 from __future__ import annotations
 
@@ -38,8 +39,10 @@ def test_singular_input_gives_a_finite_factor(n):
     assert np.abs(W).max() > 1e6  # the clamped pivots show up as huge entries
 
 
-def test_gradient_of_the_blocked_factor_matches_differences():
-    n = UNROLL_MAX + 4
+@pytest.mark.parametrize("n", [7, UNROLL_MAX + 4])
+def test_gradient_of_the_factor_matches_differences(n):
+    # the derivative is the analytic rule of inverse_cholesky's custom JVP: both the
+    # unrolled (n <= UNROLL_MAX) and the blocked factor, in reverse and forward mode
     rng = np.random.default_rng(2)
     A = jnp.asarray(_spd(rng, n))
     E = jnp.asarray(rng.normal(size=(n, n)))
@@ -54,6 +57,27 @@ def test_gradient_of_the_blocked_factor_matches_differences():
     h = 1e-6
     fd = (f(h) - f(-h)) / (2 * h)
     assert np.isfinite(g) and abs(g - fd) <= 1e-5 * abs(fd)
+    assert abs(jax.jacfwd(f)(0.0) - g) <= 1e-10 * abs(g)
+
+
+def test_gradient_with_respect_to_every_entry_is_symmetric_and_matches_differences():
+    # the factor reads a symmetric matrix: its gradient is the symmetric one, and the
+    # derivative along a symmetric direction E is <grad, E>
+    n = 9
+    rng = np.random.default_rng(4)
+    A = jnp.asarray(_spd(rng, n))
+    C = jnp.asarray(rng.normal(size=(n, n)))
+
+    def f(M):
+        return jnp.sum(C * inverse_cholesky(M))
+
+    G = np.asarray(jax.grad(f)(A))
+    np.testing.assert_allclose(G, G.T, rtol=0, atol=1e-12 * np.abs(G).max())
+    E = rng.normal(size=(n, n))
+    E = jnp.asarray(E + E.T)
+    h = 1e-6
+    fd = (f(A + h * E) - f(A - h * E)) / (2 * h)
+    assert abs(np.sum(G * np.asarray(E)) - fd) <= 1e-6 * abs(fd)
 
 
 def test_top_eigenvalue_is_a_lower_bound_and_exact_with_enough_steps():
