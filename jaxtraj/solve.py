@@ -334,15 +334,13 @@ def _finish(P, uv, basis, weights, N, b, max_gain, penalty, refine, diagnostics)
     observed = weights > 0
     finite = jnp.all(jnp.isfinite(uv), axis=1) | ~observed
     uv = jnp.where(observed[:, None], uv, 0.0)
-    if penalty is not None:
-        pen3 = jnp.repeat(penalty, 3)
+    pen3 = None if penalty is None else jnp.repeat(penalty, 3)
     beta, W, d, Q = _solve_refined(P, uv, basis, weights, N, b, penalty, refine)
     coeffs = beta.reshape(k, 3)
     points = basis @ coeffs
 
     if diagnostics:
-        pen = None if penalty is None else pen3
-        gain = _gain_bound(basis, W, d, _frame_spread(Q, weights)[1], pen3=pen)
+        gain = _gain_bound(basis, W, d, _frame_spread(Q, weights)[1], pen3=pen3)
         degenerate = (gain > max_gain) | ~jnp.isfinite(gain)
     else:
         gain = jnp.full((), jnp.nan, dtype)

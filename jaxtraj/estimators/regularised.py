@@ -236,9 +236,9 @@ def reconstruct_regularised_points(
     multiply-adds for its factorisation; this, not the assembly, dominates for the
     default k = min(F, 60): about 65-140 ms per track at F = 150 on 2 cores (AMD EPYC,
     Intel Xeon). A shared weight pays it for ``cv_points`` tracks only, then one solve
-    per point (README: per-point cost of the batched drivers). A shared weight suits points of one
-    rigid workpiece (the same motion, the same cameras and noise); points that move
-    differently want their own.
+    per point (README: per-point cost of the batched drivers). A shared weight suits
+    points of one rigid workpiece (the same motion, the same cameras and noise); points
+    that move differently want their own.
     """
     if np.ndim(uv) != 3:
         raise ValueError(f"uv: expected shape (N, F, 2), got {np.shape(uv)}")
