@@ -6,20 +6,31 @@ Augmented Lagrangian (Powell-Hestenes-Rockafellar for inequalities): with multip
 
     L(theta) = f(theta) + 1 / (2 rho) sum_i (max(0, lambda_i + rho g_i(theta))^2 - lambda_i^2),
 
-each outer round minimises ``L`` with optimistix BFGS from where the last round ended and
-then updates ``lambda <- max(0, lambda + rho g)``. Unlike a pure penalty, the multipliers
-let the constraints hold with a finite ``rho`` and give a first-order (KKT) stationarity
-measure, ``||grad f + sum_i lambda_i grad g_i||_inf``, reported with the largest
-constraint violation; a design is converged when both are below their tolerances. Several
-starts run at once (``vmap``); the best feasible is reported.
+each outer round minimises ``L`` by BFGS from where the last round ended and then updates
+``lambda <- max(0, lambda + rho g)``. Unlike a pure penalty, the multipliers let the
+constraints hold with a finite ``rho`` and give a first-order (KKT) stationarity measure,
+``||grad f + sum_i lambda_i grad g_i||_inf``, reported with the largest constraint
+violation; a design is converged when both are below their tolerances, which is tested
+after every accepted step (see :func:`_design`). Several starts run at once (``vmap``);
+the best feasible is reported.
+
+The BFGS is written here rather than taken from optimistix for two measured reasons (the
+built-in cell, DCT objective, F = 60, 8 starts, 2 cores): a loop with one evaluation of
+the Lagrangian per pass compiles in half the time (XLA program 2.5 -> 0.7 MB, trace and
+compilation 19 -> 9 s), and stopping on the KKT test as soon as it holds, instead of on a
+relative change of ``L`` that the penalty's kinks keep from ever being met, with the
+penalty raised late (10, 10, 10, 30, 30, 100, ...), lets every start converge (0 of 8
+before, each round taking its 500 steps).
 """
 
 from __future__ import annotations
 
+from typing import NamedTuple
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
-import optimistix as optx
+import numpy as np
 from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
 from ..analysis import reconstructibility
@@ -158,48 +169,161 @@ class _Problem(eqx.Module):
         return jnp.concatenate([values[name] for name in JOINT_CONSTRAINTS]) + self.margin
 
 
-def _lagrangian(theta, args):
-    problem, lam, rho = args
+#: Armijo's sufficient-decrease fraction of the BFGS line search
+ARMIJO = 0.1
+#: penalty of the first evaluation of a design, which tests the given start and
+#: multipliers: there ``grad L = grad f + sum_i max(0, lambda_i + rho g_i) grad g_i`` is
+#: ``grad f + sum_i lambda_i grad g_i`` to within ``rho |g|``
+RHO_CHECK = 1e-8
+#: largest change of one parameter (a joint's control point) in one step [rad]: the first
+#: step of a round follows the raw gradient, which can be huge where the objective is
+#: near a singularity (eta -> 0 for a camera that does not move)
+MAX_STEP = 0.2
+_CHECK, _ROUND, _SEARCH = 0, 1, 2  # what an evaluation of the solver's loop is for
+
+
+class _Search(NamedTuple):
+    """State of one start's search (see :func:`_design`)."""
+
+    phase: Int[Array, ""]  # _CHECK, _ROUND (first evaluation of a round) or _SEARCH
+    i: Int[Array, ""]  # the round
+    k: Int[Array, ""]  # accepted BFGS steps in this round
+    x: Float[Array, " n"]  # the accepted point, flattened
+    f: Float[Array, ""]  # the Lagrangian there (this round's multipliers and penalty)
+    g: Float[Array, " n"]  # its gradient
+    c: Float[Array, " G"]  # the constraint values there
+    H: Float[Array, "n n"]  # inverse Hessian estimate
+    p: Float[Array, " n"]  # search direction
+    alpha: Float[Array, ""]  # step along p tried next
+    lam: Float[Array, " G"]  # this round's multipliers
+    lam_out: Float[Array, " G"]  # the multipliers reported
+    rounds: Int[Array, ""]
+    done: Bool[Array, ""]
+
+
+def _lagrangian(x, lam, rho, problem, shape):
+    """Augmented Lagrangian of the flattened parameters, and the constraint values."""
+    theta = x.reshape(shape)
     g = problem.constraints(theta)
     shifted = jnp.maximum(lam + rho * g, 0.0)
-    return problem.objective(theta) + jnp.sum(shifted**2 - lam**2) / (2 * rho)
+    return problem.objective(theta) + jnp.sum(shifted**2 - lam**2) / (2 * rho), g
 
 
 @eqx.filter_jit
 def _design(inits, lams, problem: _Problem, rhos, inner_steps, rtol, feasibility_tol, stat_tol):
-    """ALM rounds from each start until its design is converged or the rounds run out."""
-    solver = optx.BFGS(rtol=rtol, atol=rtol * 1e-2)
-    n_rounds = rhos.shape[0]
+    """ALM rounds from each start until its design is converged or the rounds run out.
 
-    def measures(theta, lam):
-        """(stationarity, largest violation of the margined constraints) at ``theta``."""
-        grad = jax.grad(lambda th: problem.objective(th) + lam @ problem.constraints(th))(theta)
-        return jnp.max(jnp.abs(grad)), jnp.maximum(jnp.max(problem.constraints(theta)), 0.0)
+    Each round minimises the augmented Lagrangian by BFGS (inverse Hessian from the
+    identity, backtracking line search with Armijo's test, the step shrunk to the minimum
+    of the quadratic through the last trial). The whole search of one start is one loop
+    with exactly one evaluation of the Lagrangian's value and gradient per pass (the
+    first test of the start, a round's first point, or a line-search trial), so the
+    compiled program holds the objective and the constraints once: a third of the
+    program, and of its compilation time, of a solver that traces them at several places.
+
+    After every accepted point the KKT conditions are tested with the multiplier estimate
+    ``max(0, lambda + rho g)``: the gradient of the Lagrangian is then exactly
+    ``grad f + sum_i lambda_i grad g_i``; the start stops as soon as it and the largest
+    violation are within their tolerances. A round ends when its Lagrangian is stationary
+    (gradient within ``stat_tol``) while a constraint is violated, when its step and
+    change fall below ``rtol``, when the line search fails, or after ``inner_steps``
+    accepted steps; the multipliers are then updated to ``max(0, lambda + rho g)``.
+    """
+    shape = inits.shape[1:]
+    n_rounds = rhos.shape[0]
+    dtype = inits.dtype
+    n = int(np.prod(shape))
+    eye = jnp.eye(n, dtype=dtype)
+    value_grad = jax.value_and_grad(_lagrangian, has_aux=True)
+
+    def step(s: _Search) -> _Search:
+        search = s.phase == _SEARCH
+        rho = jnp.where(s.phase == _CHECK, jnp.asarray(RHO_CHECK, dtype), rhos[s.i])
+        xt = jnp.where(search, s.x + s.alpha * s.p, s.x)
+        (ft, ct), gt = value_grad(xt, s.lam, rho, problem, shape)
+        finite = jnp.isfinite(ft) & jnp.all(jnp.isfinite(gt))
+        slope = s.g @ s.p
+        armijo = search & finite & (ft <= s.f + ARMIJO * s.alpha * slope)
+        accept = ~search | armijo
+        # BFGS update of the inverse Hessian with the accepted step (a round restarts it)
+        sv, yv = xt - s.x, gt - s.g
+        sy = sv @ yv
+        update = armijo & (sy > jnp.finfo(dtype).eps)
+        r = 1.0 / jnp.where(update, sy, 1.0)
+        V = eye - r * jnp.outer(sv, yv)
+        H = jnp.where(update, V @ s.H @ V.T + r * jnp.outer(sv, sv), s.H)
+        H = jnp.where(s.phase == _ROUND, eye, H)
+        x = jnp.where(accept, xt, s.x)
+        f = jnp.where(accept, ft, s.f)
+        g = jnp.where(accept, gt, s.g)
+        c = jnp.where(accept, ct, s.c)
+        p = -H @ g
+        descent = g @ p < 0
+        H = jnp.where(descent, H, eye)
+        p = jnp.where(descent, p, -g)
+        # a rejected trial: the minimiser of the quadratic through f, the slope and f(alpha)
+        curv = ft - s.f - slope * s.alpha
+        shrunk = -slope * s.alpha**2 / (2.0 * jnp.where(curv > 0, curv, 1.0))
+        shrunk = jnp.where(finite & (curv > 0), shrunk, 0.5 * s.alpha)
+        # a new direction: the full step, at most MAX_STEP per parameter
+        longest = jnp.max(jnp.abs(p))
+        full = jnp.minimum(1.0, MAX_STEP / jnp.where(longest > 0, longest, 1.0))
+        alpha = jnp.where(accept, full, jnp.clip(shrunk, 0.1 * s.alpha, 0.5 * s.alpha))
+        k = s.k + armijo.astype(jnp.int32)
+        # KKT test at the accepted point, multipliers max(0, lambda + rho g)
+        stat = jnp.max(jnp.abs(g))
+        viol = jnp.maximum(jnp.max(c), 0.0)
+        lam_hat = jnp.maximum(s.lam + rho * c, 0.0)
+        kkt = accept & (viol <= feasibility_tol) & (stat <= stat_tol)
+        small = (
+            armijo
+            & (jnp.abs(ft - s.f) <= rtol * jnp.abs(ft) + 1e-2 * rtol)
+            & (jnp.max(jnp.abs(sv)) <= rtol * jnp.max(jnp.abs(xt)) + 1e-2 * rtol)
+        )
+        failed = search & ~armijo & (s.alpha * jnp.max(jnp.abs(s.p)) < 1e-12)
+        stationary = accept & (stat <= stat_tol)
+        end = (s.phase != _CHECK) & ~kkt & (stationary | small | failed | (k >= inner_steps))
+        last = end & (s.i + 1 >= n_rounds)
+        # rounds used: those whose search took a step (none if the start was converged)
+        used = s.i + jnp.where(k > 0, 1, 0)
+        return _Search(
+            phase=jnp.where(end | (s.phase == _CHECK), _ROUND, _SEARCH).astype(jnp.int32),
+            i=s.i + (end & ~last).astype(jnp.int32),
+            k=jnp.where(end, 0, k),
+            x=x,
+            f=f,
+            g=g,
+            c=c,
+            H=H,
+            p=p,
+            alpha=alpha,
+            lam=jnp.where(end & ~last, lam_hat, s.lam),
+            lam_out=jnp.where(kkt | last, lam_hat, s.lam_out),
+            rounds=jnp.where(kkt, used, jnp.where(last, n_rounds, s.rounds)),
+            done=kkt | last,
+        )
 
     def one(theta0, lam0):
-        def going(carry):
-            i, _, _, stat, viol = carry
-            return (i < n_rounds) & ((viol > feasibility_tol) | (stat > stat_tol))
-
-        def round_(carry):
-            i, theta, lam, _, _ = carry
-            rho = rhos[i]
-            sol = optx.minimise(
-                _lagrangian,
-                solver,
-                theta,
-                args=(problem, lam, rho),
-                max_steps=inner_steps,
-                throw=False,
-            )
-            ok = jnp.all(jnp.isfinite(sol.value))
-            theta = jnp.where(ok, sol.value, theta)
-            lam = jnp.maximum(lam + rho * problem.constraints(theta), 0.0)
-            return (i + 1, theta, lam, *measures(theta, lam))
-
-        start = (jnp.zeros((), jnp.int32), theta0, lam0, *measures(theta0, lam0))
-        rounds, theta, lam, stat, _ = jax.lax.while_loop(going, round_, start)
-        return theta, lam, stat, rounds
+        x0 = theta0.reshape(-1)
+        zero = jnp.zeros((), dtype)
+        start = _Search(
+            phase=jnp.asarray(_CHECK, jnp.int32),
+            i=jnp.zeros((), jnp.int32),
+            k=jnp.zeros((), jnp.int32),
+            x=x0,
+            f=zero,
+            g=jnp.zeros(n, dtype),
+            c=jnp.zeros_like(lam0),
+            H=eye,
+            p=jnp.zeros(n, dtype),
+            alpha=jnp.ones((), dtype),
+            lam=lam0,
+            lam_out=lam0,
+            rounds=jnp.zeros((), jnp.int32),
+            done=jnp.zeros((), bool),
+        )
+        s = jax.lax.while_loop(lambda s: ~s.done, step, start)
+        return s.x.reshape(shape), s.lam_out, jnp.max(jnp.abs(s.g)), s.rounds
 
     return jax.vmap(one)(inits, lams)
 
@@ -343,7 +467,7 @@ def design_joint_path(
     estimator: str = "dct",
     layout: tuple | None = None,
     pixel_sigma: float = 0.3,
-    penalties: tuple[float, ...] = (10.0, 30.0, 100.0, 100.0, 100.0, 100.0, 100.0, 100.0),
+    penalties: tuple[float, ...] = (10.0, 10.0, 10.0, 30.0, 30.0, 100.0, 100.0, 100.0),
     inner_steps: int = 500,
     rtol: float = 1e-9,
     grid_margin: float = 0.01,
@@ -379,9 +503,12 @@ def design_joint_path(
             points and the (3,) followed point in the object frame [m], and the object's
             (3, 3) orientation in the world.
         pixel_sigma: detection noise [px].
-        penalties: ``rho`` per augmented-Lagrangian round; each start stops after the
-            round that makes it converged (both tolerances below).
-        inner_steps: BFGS steps per round; rtol: its tolerance.
+        penalties: ``rho`` per augmented-Lagrangian round; each start stops as soon as it
+            is converged (both tolerances below). Raised late: a small ``rho`` keeps the
+            penalty's kinks mild while the active constraints are found.
+        inner_steps: accepted BFGS steps per round at most; rtol: a round also ends when
+            a step changes the Lagrangian and every parameter by less than this
+            (relative).
         grid_margin: the design holds every normalised constraint to ``<= -grid_margin``
             on its grid (1 % of the limit by default), so that it still holds between the
             grid points (checked on a 10x finer grid in the tests); reports use the
