@@ -16,8 +16,9 @@ In the robot's joint space (the path a KUKA arm executes, orientation included):
 * :mod:`.joint_path` - ``q(t) = q0 + B-spline``, camera pose ``T_w_base FK(q) T_f_c``,
   joint position/velocity/acceleration/jerk limits on a fine grid, field of view,
   stand-off, keep-out, floor, optional end position;
-* :mod:`.joint_optimise` - augmented Lagrangian with optimistix BFGS, vmapped starts,
-  reporting the largest violation and the KKT stationarity.
+* :mod:`.joint_optimise` - augmented Lagrangian with a BFGS of its own (one evaluation
+  site, KKT test after every step), vmapped starts, reporting the largest violation and
+  the KKT stationarity.
 """
 
 from .constraints import CONSTRAINTS as CONSTRAINTS
