@@ -189,6 +189,39 @@ def test_design_converges_and_holds_on_a_10x_finer_grid(scene, rng):
         design_joint_path(model, cell, pred, samples, basis, inits, objective="speed")
 
 
+def test_design_program_evaluates_objective_and_constraints_at_one_place(scene, monkeypatch):
+    """The solver's loop evaluates the Lagrangian at exactly one place, so the compiled
+    design program holds the objective and the constraints once (a solver that traces
+    them at several places compiled twice as long; see ``joint_optimise._design``)."""
+    from jaxtraj.design import joint_optimise as jo
+
+    model = JointPathModel.create(scene["times"], scene["q0"], n_control=8, grid_per_image=5)
+    inits = jnp.zeros((2, *model.shape))
+    problem = jo._problem(
+        "mean_error",
+        model,
+        scene["cell"],
+        scene["predicted"],
+        scene["samples"],
+        scene["basis"],
+        0.3,
+        inits.dtype,
+    )
+    lams = jnp.zeros((2, jax.eval_shape(problem.constraints, inits[0]).shape[0]))
+    traced = {"objective": 0, "constraints": 0}
+    for name in traced:
+        original = getattr(jo._Problem, name)
+
+        def counted(self, theta, original=original, name=name):
+            traced[name] += 1
+            return original(self, theta)
+
+        monkeypatch.setattr(jo._Problem, name, counted)
+    rhos = jnp.ones(3)
+    jax.eval_shape(lambda: jo._design(inits, lams, problem, rhos, 10, 1e-9, 1e-3, 1e-3))
+    assert traced == {"objective": 1, "constraints": 1}
+
+
 def test_pose_estimator_evaluates_pnp_error_and_keeps_every_reference_point_in_view(scene, rng):
     from jaxtraj.design import expected_pose_errors_for_cameras, pose_point_covariances
     from jaxtraj.design.joint_optimise import visible_points
