@@ -222,6 +222,29 @@ def test_design_program_evaluates_objective_and_constraints_at_one_place(scene, 
     assert traced == {"objective": 1, "constraints": 1}
 
 
+def test_design_ends_where_the_objective_is_not_finite(scene, monkeypatch):
+    """A start whose objective is NaN everywhere ends (every line search fails, round
+    after round) and is reported as neither converged nor feasible, instead of looping."""
+    from jaxtraj.design import joint_optimise as jo
+
+    monkeypatch.setattr(jo._Problem, "objective", lambda self, theta: jnp.nan * jnp.sum(theta))
+    model = JointPathModel.create(scene["times"], scene["q0"], n_control=8, grid_per_image=2)
+    inits = jnp.zeros((1, *model.shape))
+    best, designs = design_joint_path(
+        model,
+        scene["cell"],
+        scene["predicted"],
+        scene["samples"],
+        scene["basis"],
+        inits,
+        objective="eta",
+        penalties=(10.0, 30.0),
+    )
+    assert not bool(designs.converged[0])
+    assert int(designs.rounds[0]) == 2
+    np.testing.assert_array_equal(np.asarray(best.theta), np.zeros(model.shape))
+
+
 def test_pose_estimator_evaluates_pnp_error_and_keeps_every_reference_point_in_view(scene, rng):
     from jaxtraj.design import expected_pose_errors_for_cameras, pose_point_covariances
     from jaxtraj.design.joint_optimise import visible_points

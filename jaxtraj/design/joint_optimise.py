@@ -218,8 +218,10 @@ def _design(inits, lams, problem: _Problem, rhos, inner_steps, rtol, feasibility
     of the quadratic through the last trial). The whole search of one start is one loop
     with exactly one evaluation of the Lagrangian's value and gradient per pass (the
     first test of the start, a round's first point, or a line-search trial), so the
-    compiled program holds the objective and the constraints once: a third of the
-    program, and of its compilation time, of a solver that traces them at several places.
+    compiled program holds the objective and the constraints once: about a quarter of the
+    program, and half the trace and compilation time, of a solver that traces them at
+    several places. Every pass either accepts a step or at least halves the trial step, so
+    each round ends after finitely many passes, also where the Lagrangian is not finite.
 
     After every accepted point the KKT conditions are tested with the multiplier estimate
     ``max(0, lambda + rho g)``: the gradient of the Lagrangian is then exactly
@@ -280,7 +282,9 @@ def _design(inits, lams, problem: _Problem, rhos, inner_steps, rtol, feasibility
             & (jnp.abs(ft - s.f) <= rtol * jnp.abs(ft) + 1e-2 * rtol)
             & (jnp.max(jnp.abs(sv)) <= rtol * jnp.max(jnp.abs(xt)) + 1e-2 * rtol)
         )
-        failed = search & ~armijo & (s.alpha * jnp.max(jnp.abs(s.p)) < 1e-12)
+        # the line search has failed when the trial step has become negligible, or is not
+        # a number (a start whose Lagrangian is not finite): written so that NaN fails
+        failed = search & ~armijo & ~(s.alpha * jnp.max(jnp.abs(s.p)) >= 1e-12)
         stationary = accept & (stat <= stat_tol)
         end = (s.phase != _CHECK) & ~kkt & (stationary | small | failed | (k >= inner_steps))
         last = end & (s.i + 1 >= n_rounds)
