@@ -224,7 +224,8 @@ def test_design_program_evaluates_objective_and_constraints_at_one_place(scene, 
 
 def test_design_ends_where_the_objective_is_not_finite(scene, monkeypatch):
     """A start whose objective is NaN everywhere ends (every line search fails, round
-    after round) and is reported as neither converged nor feasible, instead of looping."""
+    after round) and is reported as not converged with its parameters unchanged, instead
+    of looping."""
     from jaxtraj.design import joint_optimise as jo
 
     monkeypatch.setattr(jo._Problem, "objective", lambda self, theta: jnp.nan * jnp.sum(theta))
