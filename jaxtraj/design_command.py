@@ -157,12 +157,18 @@ def _initial_guesses(model: JointPathModel, chain, starts: int, seed: int) -> np
     return np.stack(out)
 
 
+def _chain(spec: CellSpec):
+    """The cell's robot, its velocity, acceleration and jerk limits replaced by the cell's
+    where given (e.g. reduced speed)."""
+    return load_robot(spec.robot).with_limits(
+        velocity=spec.velocity, acceleration=spec.acceleration, jerk=spec.jerk
+    )
+
+
 def design_cell(spec: CellSpec, *, inner_steps: int = 500) -> dict:
     """Design the camera path for a cell; returns the design, the model and the check on
     a 10x finer grid, with timings (host side)."""
-    chain = load_robot(spec.robot)
-    if spec.acceleration is not None or spec.jerk is not None:
-        chain = chain.with_limits(acceleration=spec.acceleration, jerk=spec.jerk)
+    chain = _chain(spec)
     q0 = _start_configuration(spec, chain)
     cell = RobotCell(
         chain,

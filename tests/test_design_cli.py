@@ -44,6 +44,28 @@ def test_example_cell_round_trips_through_json(tmp_path):
     assert 1.5 < spec.predicted[:, 0].min() and spec.predicted[:, 0].max() < 2.2
 
 
+def test_cell_limits_replace_the_robots_and_round_trip(tmp_path):
+    """A cell's velocity, acceleration and jerk limits (e.g. reduced speed) survive
+    CELL.json and replace the shipped robot's in the design's chain."""
+    from jaxtraj.design_command import _chain
+    from jaxtraj.io.urdf import load_robot
+
+    shipped = load_robot("kr16_2")
+    data = _cell()
+    data["limits"]["velocity_deg_s"] = [50.0] * 6
+    data["limits"]["jerk_deg_s3"] = [900.0, 900.0, 900.0, 1800.0, 1800.0, 1800.0]
+    path = tmp_path / "cell.json"
+    path.write_text(json.dumps(data))
+    spec = read_cell(path)
+    again = cell_from_dict(spec.to_dict())
+    for s in (spec, again):
+        chain = _chain(s)
+        np.testing.assert_allclose(np.degrees(chain.velocity), 50.0)
+        np.testing.assert_allclose(np.degrees(chain.jerk)[[0, 5]], [900.0, 1800.0])
+        np.testing.assert_allclose(chain.acceleration, shipped.acceleration)
+    assert np.all(shipped.velocity > np.radians(150.0))
+
+
 @pytest.mark.parametrize(
     "kind, pattern",
     [
@@ -52,6 +74,7 @@ def test_example_cell_round_trips_through_json(tmp_path):
         ("empty", r"'prediction' is empty"),
         ("limits", r"start: joint_a2 = 50\.0 deg is outside its limits -155 \.\. 35 deg"),
         ("key", r"unknown key\(s\) \['robt'\]"),
+        ("velocity", r"'limits\.velocity_deg_s': expected positive values"),
         ("shape", r"'T_f_c': expected shape \(4, 4\)"),
     ],
 )
@@ -68,6 +91,8 @@ def test_bad_input_exits_2_with_one_clear_message(tmp_path, capsys, kind, patter
         data["start"] = {"q_deg": [0, 50, 90, 0, 0, 0]}
     elif kind == "key":
         data["robt"] = "kr16_2"
+    elif kind == "velocity":
+        data["limits"]["velocity_deg_s"] = [100, 100, 0, 100, 100, 100]
     elif kind == "shape":
         data["T_f_c"] = np.eye(3).tolist()
     code, err = _run(tmp_path, capsys, data, text)

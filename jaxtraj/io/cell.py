@@ -10,7 +10,8 @@ A JSON object (SI units except where a key says ``_deg``)::
       "start": {"q_deg": [a1, ..., a6]}        # start configuration, or
                {"camera_position": [x, y, z]}  #   camera there, looking at the first prediction
       "prediction": {"times": [...], "points": [[x, y, z], ...]},   # predicted workpiece
-      "limits": {"acceleration_deg_s2": [6], "jerk_deg_s3": [6], "standoff": [0.6, 1.4],
+      "limits": {"velocity_deg_s": [6], "acceleration_deg_s2": [6], "jerk_deg_s3": [6],
+                 "standoff": [0.6, 1.4],
                  "half_fov_deg": 19, "fov_margin_deg": 3, "keep_out_radius": 0.4,
                  "floor_z": 0.0, "floor_clearance": 0.1},            # all optional
       "end": {"offset": [0, 0, 0.6], "tolerance": 0.05},             # optional
@@ -52,6 +53,7 @@ class CellSpec:
     predicted: np.ndarray
     q_start: np.ndarray | None = None
     camera_start: np.ndarray | None = None
+    velocity: np.ndarray | None = None
     acceleration: np.ndarray | None = None
     jerk: np.ndarray | None = None
     standoff: tuple[float, float] = (0.6, 1.4)
@@ -107,6 +109,8 @@ class CellSpec:
                 "seed": self.seed,
             },
         }
+        if self.velocity is not None:
+            out["limits"]["velocity_deg_s"] = np.degrees(self.velocity).tolist()
         if self.acceleration is not None:
             out["limits"]["acceleration_deg_s2"] = np.degrees(self.acceleration).tolist()
         if self.jerk is not None:
@@ -240,6 +244,7 @@ def cell_from_dict(data: dict, where: str = "CELL.json") -> CellSpec:
         f"{where}: 'limits'",
         data.get("limits", {}),
         {
+            "velocity_deg_s",
             "acceleration_deg_s2",
             "jerk_deg_s3",
             "standoff",
@@ -250,7 +255,11 @@ def cell_from_dict(data: dict, where: str = "CELL.json") -> CellSpec:
             "floor_clearance",
         },
     )
-    for key, attr in (("acceleration_deg_s2", "acceleration"), ("jerk_deg_s3", "jerk")):
+    for key, attr in (
+        ("velocity_deg_s", "velocity"),
+        ("acceleration_deg_s2", "acceleration"),
+        ("jerk_deg_s3", "jerk"),
+    ):
         if key in limits:
             values = _array(f"{where}: 'limits.{key}'", limits[key], (6,))
             if np.any(values <= 0):
