@@ -153,13 +153,14 @@ def compare(args) -> int:
             summary.append(("known-layout pose", *compare_pose_scene(args, scene, spec)))
     print(
         "\n| scene | estimator | designed for it [mm] | best weave [mm] | ratio (target >= 3) "
-        "| random discontinuous [mm] | designed / random (target <= 1) |"
+        "| random discontinuous [mm] | designed / random (target <= 1) | random within reach "
+        "[mm] | designed / random within reach |"
     )
-    print("|---|---|---|---|---|---|---|")
-    for estimator, scene, designed, weave, random_ in summary:
+    print("|---|---|---|---|---|---|---|---|---|")
+    for estimator, scene, designed, weave, random_, reach in summary:
         print(
             f"| {scene} | {estimator} | {designed:.3g} | {weave:.3g} | {weave / designed:.2g}x | "
-            f"{random_:.3g} | {designed / random_:.2g} |"
+            f"{random_:.3g} | {designed / random_:.2g} | {reach:.3g} | {designed / reach:.2g} |"
         )
     return 0
 
@@ -179,6 +180,93 @@ def random_camera(spec):
     return P, T_w_c.at[:, :3, 3].set(path.centres)
 
 
+def joint_excess(spec, cell, q_start, T_w_c):
+    """How far the KR 16 is from following the cameras ``T_w_c`` (F, 4, 4): inverse
+    kinematics of every image's camera pose (each from the last reached image's solution,
+    the nearest branch); returns (images out of reach or outside the joint ranges, the
+    largest joint speed the jumps between consecutive reached images ask for as a
+    multiple of that joint's limit, the median over those jumps of their largest, the
+    largest joint acceleration, from second differences over three consecutive reached
+    images, as a multiple of that joint's limit)."""
+    from jaxtraj.robot.ik import inverse_kinematics
+
+    chain = cell.chain
+    T_base_f = (
+        np.linalg.inv(np.asarray(cell.T_w_base))
+        @ np.asarray(T_w_c)
+        @ np.linalg.inv(np.asarray(cell.T_f_c))
+    )
+    q, qs, reached = np.asarray(q_start), [], []
+    for T in T_base_f:
+        r = inverse_kinematics(chain, T, q, position_tol=1e-6, rotation_tol=1e-6)
+        reached.append(bool(r.success))
+        if r.success:
+            q = np.asarray(r.q)
+        qs.append(q)
+    qs, reached = np.asarray(qs), np.asarray(reached)
+    both = reached[1:] & reached[:-1]
+    nan = float("nan")
+    if not np.any(both):
+        return int(np.sum(~reached)), nan, nan, nan
+    t = np.asarray(spec.times)
+    dt = np.diff(t)
+    speed = np.abs(np.diff(qs, axis=0)) / dt[:, None] / np.asarray(chain.velocity)[None]
+    worst = np.max(speed[both], axis=1)
+    three = both[1:] & both[:-1]
+    v = np.diff(qs, axis=0) / dt[:, None]
+    acc = np.abs(np.diff(v, axis=0)) / (0.5 * (dt[1:] + dt[:-1]))[:, None]
+    acc = acc / np.asarray(chain.acceleration)[None]
+    worst_acc = float(np.max(acc[three])) if np.any(three) else nan
+    return int(np.sum(~reached)), float(np.max(worst)), float(np.median(worst)), worst_acc
+
+
+def excess_text(excess, frames: int) -> str:
+    """``joint_excess`` in words, for the tables' "within limits" column."""
+    out, worst, median, acc = excess
+    if out:
+        return f"no: {out} of {frames} images out of reach"
+    return (
+        f"no: jumps at up to {worst:.1f}x a joint's speed limit (median {median:.1f}x) "
+        f"and {acc:.0f}x its acceleration limit"
+    )
+
+
+def random_reachable_camera(spec, cell, q_start, candidates=32):
+    """The random discontinuous camera kept inside the KR 16's reach: per image the first
+    of ``candidates`` draws (same distribution as :func:`random_camera`) whose camera
+    pose the robot reaches within its joint limits; ``(P, T_w_c, reached)`` with
+    ``reached`` the images where some draw was reachable (the others keep the first draw).
+    A comparison that ignores only the speed of the jumps, not where the camera can be."""
+    from jaxtraj import projection_matrix
+    from jaxtraj.robot.ik import inverse_kinematics
+    from jaxtraj.sim import random_discontinuous_camera
+
+    keys = jax.random.split(jax.random.PRNGKey(spec.seed + 1), candidates)
+    pred = jnp.asarray(spec.predicted)
+    paths = [random_discontinuous_camera(k, pred, standoff=spec.standoff) for k in keys]
+    R_c_w = jnp.stack([p.R_c_w for p in paths])  # (M, F, 3, 3)
+    t_c_w = jnp.stack([p.t_c_w for p in paths])
+    centres = jnp.stack([p.centres for p in paths])
+    T_w_c = jnp.zeros((*centres.shape[:2], 4, 4), centres.dtype).at[..., 3, 3].set(1.0)
+    T_w_c = T_w_c.at[..., :3, :3].set(jnp.swapaxes(R_c_w, -1, -2)).at[..., :3, 3].set(centres)
+    T_base_f = jnp.linalg.inv(cell.T_w_base) @ T_w_c @ jnp.linalg.inv(cell.T_f_c)
+    ik = jax.jit(
+        jax.vmap(
+            lambda T: (
+                inverse_kinematics(
+                    cell.chain, T, jnp.asarray(q_start), position_tol=1e-6, rotation_tol=1e-6
+                ).success
+            )
+        )
+    )
+    ok = np.asarray(ik(T_base_f.reshape(-1, 4, 4))).reshape(centres.shape[:2])  # (M, F)
+    pick = np.argmax(ok, axis=0)
+    frames = np.arange(pred.shape[0])
+    K = jnp.asarray(spec.K)
+    P = jax.vmap(lambda R, t: projection_matrix(K, R, t))(R_c_w[pick, frames], t_c_w[pick, frames])
+    return P, T_w_c[pick, frames], ok[pick, frames]
+
+
 def use_known_layout(spec):
     """Design ``spec`` for the known-layout pose: the simulated workpiece's six marker
     centres and its assembly point."""
@@ -194,9 +282,10 @@ def start_weaves(res, spec, starts):
 
 def compare_pose_scene(args, scene, spec):
     """Known-layout pose on one scene: the path designed for it, the start weaves and the
-    random discontinuous camera, each measured by Monte-Carlo of OpenCV's SQPnP + LM
-    (``--draws`` per image, the predicted trajectory); returns (scene, designed, best
-    weave, random) mean errors [mm] of the followed point."""
+    random discontinuous camera (also kept within reach), each measured by Monte-Carlo of
+    OpenCV's SQPnP + LM (``--draws`` per image, the predicted trajectory); returns (scene,
+    designed, best weave, random, random within reach) mean errors [mm] of the followed
+    point."""
     use_known_layout(spec)
     res = design_cell(spec, inner_steps=args.inner_steps)
     best, designs = res["best"], res["designs"]
@@ -235,16 +324,23 @@ def compare_pose_scene(args, scene, spec):
         print(rows[-1], flush=True)
     from jaxtraj.design import expected_pose_errors_for_cameras
 
-    P, T_w_c = random_camera(spec)
+    q_start = np.asarray(model.q0)
     points, point, R_w_o = layout
-    _, expected = expected_pose_errors_for_cameras(
-        P, res["samples"], R_w_o, points, point, spec.pixel_sigma
-    )
-    mean, _ = monte_carlo_pnp(T_w_c, spec.K, spec.predicted, layout, spec.pixel_sigma, args.draws)
-    rows.append(
-        f"| random discontinuous (paper) | no: jumps | {1000 * float(expected):.3g} | "
-        f"{1000 * mean:.3g} |"
-    )
+    randoms = {}
+    for name, (P, T_w_c) in (
+        ("random discontinuous (paper)", random_camera(spec)),
+        ("random discontinuous within reach", random_reachable_camera(spec, cell, q_start)[:2]),
+    ):
+        _, expected = expected_pose_errors_for_cameras(
+            P, res["samples"], R_w_o, points, point, spec.pixel_sigma
+        )
+        mean, _ = monte_carlo_pnp(
+            T_w_c, spec.K, spec.predicted, layout, spec.pixel_sigma, args.draws
+        )
+        randoms[name] = 1000 * mean
+        limits = excess_text(joint_excess(spec, cell, q_start, T_w_c), T_w_c.shape[0])
+        rows.append(f"| {name} | {limits} | {1000 * float(expected):.3g} | {1000 * mean:.3g} |")
+        print(rows[-1], flush=True)
     print(
         f"\n[{scene}] known-layout pose (six marker centres, assembly point), F = "
         f"{args.frames}, {args.starts} starts, {args.inner_steps} BFGS steps per round, "
@@ -254,12 +350,19 @@ def compare_pose_scene(args, scene, spec):
     print("|---|---|---|---|")
     print("\n".join(rows), flush=True)
     best_weave = min(v for k, v in measured.items() if k.startswith("joint weave"))
-    return scene, measured["designed for the known-layout pose"], best_weave, 1000 * mean
+    return (
+        scene,
+        measured["designed for the known-layout pose"],
+        best_weave,
+        randoms["random discontinuous (paper)"],
+        randoms["random discontinuous within reach"],
+    )
 
 
 def compare_scene(args, scene, spec):
     """The table of one scene; returns (scene, designed-for-smoother error, best weave
-    error, random camera error) as measured with ``estimate_points`` [mm]."""
+    error, random camera error, random camera within reach error) as measured with
+    ``estimate_points`` [mm]."""
     rows = []
     results = {}
     for estimator in ("dct", "smoother2"):
@@ -303,18 +406,29 @@ def compare_scene(args, scene, spec):
             f"{1000 * ep:.3g} | {100 * flagged:.0f} % |"
         )
         print(rows[-1], flush=True)
-    # the paper's random discontinuous camera (no robot path: jumps between images)
+    # the paper's random discontinuous camera (no robot path: jumps between images), and
+    # the same kept inside the KR 16's reach (only the jumps' speed ignored)
     from jaxtraj.design import expected_errors_for_cameras, expected_smoother_errors_for_cameras
 
-    P, _ = random_camera(spec)
-    _, dct_expected = expected_errors_for_cameras(P, samples, res["basis"], spec.pixel_sigma)
-    _, sm_expected = expected_smoother_errors_for_cameras(P, samples, times, spec.pixel_sigma)
-    ep, dct, flagged = monte_carlo(P, samples, times, spec.pixel_sigma, args.draws)
-    rows.append(
-        f"| random discontinuous (paper) | no: jumps | {1000 * float(dct_expected):.3g} | "
-        f"{1000 * dct:.3g} | {1000 * float(sm_expected):.3g} | {1000 * ep:.3g} | "
-        f"{100 * flagged:.0f} % |"
-    )
+    q_start = np.asarray(model.q0)
+    P_r, T_r = random_camera(spec)
+    P_n, T_n, _ = random_reachable_camera(spec, cell, q_start)
+    randoms = {}
+    for name, P, T in (
+        ("random discontinuous (paper)", P_r, T_r),
+        ("random discontinuous within reach", P_n, T_n),
+    ):
+        _, dct_expected = expected_errors_for_cameras(P, samples, res["basis"], spec.pixel_sigma)
+        _, sm_expected = expected_smoother_errors_for_cameras(P, samples, times, spec.pixel_sigma)
+        ep, dct, flagged = monte_carlo(P, samples, times, spec.pixel_sigma, args.draws)
+        randoms[name] = 1000 * ep
+        limits = excess_text(joint_excess(spec, cell, q_start, T), T.shape[0])
+        rows.append(
+            f"| {name} | {limits} | {1000 * float(dct_expected):.3g} | "
+            f"{1000 * dct:.3g} | {1000 * float(sm_expected):.3g} | {1000 * ep:.3g} | "
+            f"{100 * flagged:.0f} % |"
+        )
+        print(rows[-1], flush=True)
     print(
         f"\n[{scene}] F = {args.frames}, {args.starts} starts, {args.inner_steps} BFGS steps "
         f"per round, {samples.shape[0]} workpiece trajectories x {args.draws} draws, "
@@ -327,7 +441,75 @@ def compare_scene(args, scene, spec):
     print("|---|---|---|---|---|---|---|")
     print("\n".join(rows), flush=True)
     best_weave = min(v for k, v in measured.items() if k.startswith("joint weave"))
-    return scene, measured["designed for smoother2"], best_weave, 1000 * ep
+    return (
+        scene,
+        measured["designed for smoother2"],
+        best_weave,
+        randoms["random discontinuous (paper)"],
+        randoms["random discontinuous within reach"],
+    )
+
+
+def limits_sweep(args) -> int:
+    """Per scene and factor: the path designed for ``estimate_points`` with the KR 16's
+    ``--swept`` limits (by default acceleration and jerk, assumed defaults: the datasheet
+    gives neither) scaled by the factor, measured by Monte-Carlo against the random
+    discontinuous camera and the same kept within the robot's reach."""
+    from jaxtraj.io.urdf import load_robot
+
+    factors = [float(f) for f in args.limits_sweep.split(",")]
+    swept = args.swept.split(",")
+    for name in swept:
+        if name not in ("velocity", "acceleration", "jerk"):
+            raise SystemExit(f"--swept: unknown limit {name!r} (velocity, acceleration, jerk)")
+    rows = []
+    for scene in args.scenes.split(","):
+        spec = scene_cell(scene, args.frames, args.starts)
+        if spec is None:
+            continue
+        spec.method, spec.order = "smoother", 2
+        chain = load_robot(spec.robot)
+        times = jnp.asarray(spec.times)
+        for factor in factors:
+            for name in swept:
+                setattr(spec, name, factor * np.asarray(getattr(chain, name)))
+            res = design_cell(spec, inner_steps=args.inner_steps)
+            best, designs = res["best"], res["designs"]
+            if factor == factors[0]:
+                q_start = np.asarray(res["model"].q0)
+                P_n = random_reachable_camera(spec, res["cell"], q_start)[0]
+                random_, reach = (
+                    monte_carlo(P, res["samples"], times, spec.pixel_sigma, args.draws)[0]
+                    for P in (random_camera(spec)[0], P_n)
+                )
+            cams = projection_matrices(
+                res["cell"], camera_poses(res["cell"], res["model"].joints_at_images(best.theta))
+            )
+            ep, _, flagged = monte_carlo(cams, res["samples"], times, spec.pixel_sigma, args.draws)
+            active = [k for k, v in best.report().items() if v["active"]]
+            rows.append(
+                f"| {scene} | {factor:g}x | {int(np.sum(designs.converged))} of {args.starts} | "
+                f"{'yes' if bool(best.feasible) else 'no'} | "
+                f"{1000 * float(best.expected_mean_error):.3g} / {1000 * ep:.3g} | "
+                f"{100 * flagged:.0f} % | {1000 * random_:.3g} | {ep / random_:.2g} | "
+                f"{1000 * reach:.3g} | {ep / reach:.2g} | "
+                f"{', '.join(active)} | {res['seconds']:.0f} s |"
+            )
+            print(rows[-1], flush=True)
+    print(
+        f"\nF = {args.frames}, {args.starts} starts, {args.draws} draws per plausible "
+        f"trajectory; the {' and '.join(swept)} limits of every joint scaled, the others as "
+        "shipped\n"
+    )
+    print(
+        f"| scene | {' and '.join(swept)} limits | converged | feasible | estimate_points "
+        "expected / simulated [mm] | flagged | random discontinuous [mm] | designed / random "
+        "| random within reach [mm] | designed / random within reach | active constraints "
+        "| design time |"
+    )
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|")
+    print("\n".join(rows), flush=True)
+    return 0
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -355,7 +537,21 @@ def main(argv: list[str] | None = None) -> int:
         help="--compare: 'temporal' (designs for the DCT and estimate_points, both measured), "
         "'pose' (the known-layout pose, measured by OpenCV PnP), or both comma-separated",
     )
+    parser.add_argument(
+        "--limits-sweep",
+        default=None,
+        metavar="FACTORS",
+        help="design for estimate_points on --scenes with the acceleration and jerk limits "
+        "scaled by each comma-separated factor (e.g. 1,2,4,8), against the random camera",
+    )
+    parser.add_argument(
+        "--swept",
+        default="acceleration,jerk",
+        help="--limits-sweep: the limits scaled, comma-separated (velocity, acceleration, jerk)",
+    )
     args = parser.parse_args(argv)
+    if args.limits_sweep:
+        return limits_sweep(args)
     if args.compare:
         return compare(args)
     spec = example_cell(frames=args.frames, starts=args.starts)

@@ -52,3 +52,30 @@ def test_random_camera_pose_is_the_inverse_of_its_projection():
     np.testing.assert_allclose(P, np.asarray(spec.K) @ T_c_w[:, :3, :], atol=1e-9)
     # the paper's camera jumps between images (why no robot can follow it)
     assert np.median(np.linalg.norm(np.diff(T_w_c[:, :3, 3], axis=0), axis=1)) > 0.2
+
+
+def test_random_camera_is_mostly_out_of_reach_and_its_reachable_variant_is_reached():
+    """The paper's random viewpoints lie mostly beyond the KR 16's reach in the built-in
+    cell; the variant kept within reach is reached (inverse kinematics within the joint
+    ranges) at most images (those where one of the 32 draws is), from the same stand-off
+    band, and its jumps break the joints' speed limits."""
+    from jaxtraj.design.joint_path import RobotCell
+    from jaxtraj.design_command import _chain, _start_configuration
+
+    spec = bench_design_joint.scene_cell("sim", frames=8, starts=1)
+    chain = _chain(spec)
+    q0 = _start_configuration(spec, chain)
+    cell = RobotCell(chain, spec.T_w_base, spec.T_f_c, spec.K, standoff=spec.standoff)
+    _, T_paper = bench_design_joint.random_camera(spec)
+    assert bench_design_joint.joint_excess(spec, cell, q0, T_paper)[0] >= 5
+    spec.times = 0.05 * spec.times  # the 8 images within 0.5 s: jumps no joint can make
+    P, T_w_c, reached = (
+        np.asarray(a) for a in bench_design_joint.random_reachable_camera(spec, cell, q0, 32)
+    )
+    assert reached.sum() >= 6, reached
+    out, worst, median, acc = bench_design_joint.joint_excess(spec, cell, q0, T_w_c)
+    assert out == np.sum(~reached) and worst >= median > 1.0 and acc > 1.0, (worst, median, acc)
+    distance = np.linalg.norm(T_w_c[:, :3, 3] - spec.predicted, axis=1)
+    assert np.all((distance >= spec.standoff[0]) & (distance <= spec.standoff[1])), distance
+    np.testing.assert_allclose(P, np.asarray(spec.K) @ np.linalg.inv(T_w_c)[:, :3, :], atol=1e-9)
+    assert bench_design_joint.excess_text((0, worst, median, acc), 8).startswith("no: jumps at")
