@@ -18,11 +18,19 @@ motion-capture takes' root paths (scaled by 0.25 to the workpiece robot's reach,
 ends with the issue's two ratios per scene: the design for ``estimate_points`` against the
 best joint weave (target >= 3x) and against the random discontinuous camera (target <= 1).
 
+The random camera's rows say how far the KR 16 is from following it (inverse kinematics
+per image: images out of reach, or the jumps' speed and acceleration as multiples of the
+joint limits), and a second reference keeps it within the robot's reach (per image the
+first reachable of 32 draws). ``--limits-sweep 1,2,4`` designs for ``estimate_points``
+with the ``--swept`` limits (default acceleration and jerk) scaled by each factor, against
+both random cameras: what separates the design from the paper's camera.
+
 Usage::
 
     python benchmarks/bench_design_joint.py [--frames 60] [--starts 8] [--inner-steps 500]
-        [--estimator dct|smoother1|smoother2|pose] [--out OUT/]
+        [--n-control 12] [--estimator dct|smoother1|smoother2|pose] [--out OUT/]
         [--compare [--draws 200] [--scenes sim,cmu131_01,cmu131_03]]
+        [--limits-sweep 1,2,4 [--swept velocity,acceleration,jerk] [--scenes ...]]
 
 ``--estimator pose`` designs for the known-layout pose (the simulated workpiece's six
 marker centres, error of its assembly point) and checks the prediction against ``--draws``
@@ -147,6 +155,7 @@ def compare(args) -> int:
         spec = scene_cell(scene, args.frames, args.starts)
         if spec is None:
             continue
+        spec.n_control = args.n_control
         if "temporal" in estimators:
             summary.append(("estimate_points", *compare_scene(args, scene, spec)))
         if "pose" in estimators:
@@ -430,7 +439,8 @@ def compare_scene(args, scene, spec):
         )
         print(rows[-1], flush=True)
     print(
-        f"\n[{scene}] F = {args.frames}, {args.starts} starts, {args.inner_steps} BFGS steps "
+        f"\n[{scene}] F = {args.frames}, {args.starts} starts, {spec.n_control} control points "
+        f"per joint, {args.inner_steps} BFGS steps "
         f"per round, {samples.shape[0]} workpiece trajectories x {args.draws} draws, "
         f"{spec.pixel_sigma} px\n"
     )
@@ -468,6 +478,7 @@ def limits_sweep(args) -> int:
         if spec is None:
             continue
         spec.method, spec.order = "smoother", 2
+        spec.n_control = args.n_control
         chain = load_robot(spec.robot)
         times = jnp.asarray(spec.times)
         for factor in factors:
@@ -497,7 +508,8 @@ def limits_sweep(args) -> int:
             )
             print(rows[-1], flush=True)
     print(
-        f"\nF = {args.frames}, {args.starts} starts, {args.draws} draws per plausible "
+        f"\nF = {args.frames}, {args.starts} starts, {args.n_control} B-spline control "
+        f"points per joint, {args.draws} draws per plausible "
         f"trajectory; the {' and '.join(swept)} limits of every joint scaled, the others as "
         "shipped\n"
     )
@@ -515,6 +527,12 @@ def limits_sweep(args) -> int:
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--frames", type=int, default=60)
+    parser.add_argument(
+        "--n-control",
+        type=int,
+        default=12,
+        help="B-spline control points per joint (default 12, the cell's)",
+    )
     parser.add_argument("--starts", type=int, default=8)
     parser.add_argument("--inner-steps", type=int, default=500)
     parser.add_argument(
@@ -555,6 +573,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.compare:
         return compare(args)
     spec = example_cell(frames=args.frames, starts=args.starts)
+    spec.n_control = args.n_control
     if args.estimator == "pose":
         use_known_layout(spec)
     elif args.estimator != "dct":
