@@ -141,21 +141,33 @@ def scene_cell(scene: str, frames: int, starts: int, data: Path = DATA):
     return spec
 
 
-def compare(args) -> int:
-    """Per scene: design for each estimator and measure every path with both estimators."""
-    for scene in args.scenes.split(","):
+def checked_scenes(args) -> list[str]:
+    """The names of ``--scenes`` (an unknown one exits with a message)."""
+    scenes = args.scenes.split(",")
+    for scene in scenes:
         if scene != "sim" and scene not in MOCAP:
             raise SystemExit(f"--scenes: unknown scene {scene!r} (sim, {', '.join(MOCAP)})")
+    return scenes
+
+
+def scene_specs(args, scenes):
+    """``(scene, spec)`` per scene whose data is present, with ``--n-control`` applied."""
+    for scene in scenes:
+        spec = scene_cell(scene, args.frames, args.starts)
+        if spec is not None:
+            spec.n_control = args.n_control
+            yield scene, spec
+
+
+def compare(args) -> int:
+    """Per scene: design for each estimator and measure every path with both estimators."""
+    scenes = checked_scenes(args)
     estimators = args.estimators.split(",")
     for e in estimators:
         if e not in ("temporal", "pose"):
             raise SystemExit(f"--estimators: unknown {e!r} (temporal, pose)")
     summary = []
-    for scene in args.scenes.split(","):
-        spec = scene_cell(scene, args.frames, args.starts)
-        if spec is None:
-            continue
-        spec.n_control = args.n_control
+    for scene, spec in scene_specs(args, scenes):
         if "temporal" in estimators:
             summary.append(("estimate_points", *compare_scene(args, scene, spec)))
         if "pose" in estimators:
@@ -473,12 +485,8 @@ def limits_sweep(args) -> int:
         if name not in ("velocity", "acceleration", "jerk"):
             raise SystemExit(f"--swept: unknown limit {name!r} (velocity, acceleration, jerk)")
     rows = []
-    for scene in args.scenes.split(","):
-        spec = scene_cell(scene, args.frames, args.starts)
-        if spec is None:
-            continue
+    for scene, spec in scene_specs(args, checked_scenes(args)):
         spec.method, spec.order = "smoother", 2
-        spec.n_control = args.n_control
         chain = load_robot(spec.robot)
         times = jnp.asarray(spec.times)
         for factor in factors:

@@ -38,6 +38,15 @@ def test_missing_take_is_skipped_and_unknown_scene_refused(tmp_path):
         bench_design_joint.compare(args)
 
 
+def test_limits_sweep_refuses_unknown_limits_and_scenes():
+    args = argparse.Namespace(limits_sweep="1,2", swept="velocity,speed", scenes="sim")
+    with pytest.raises(SystemExit, match="--swept: unknown limit 'speed'"):
+        bench_design_joint.limits_sweep(args)
+    args = argparse.Namespace(limits_sweep="1", swept="jerk", scenes="walk")
+    with pytest.raises(SystemExit, match="unknown scene 'walk'"):
+        bench_design_joint.limits_sweep(args)
+
+
 def test_unknown_estimator_refused():
     args = argparse.Namespace(scenes="sim", estimators="temporal,pnp")
     with pytest.raises(SystemExit, match="unknown 'pnp'"):
