@@ -309,8 +309,8 @@ def build_parser() -> argparse.ArgumentParser:
         description="Designs the camera robot's joint path (KUKA A1..A6) that measures the "
         "predicted workpiece best within the joint position/speed/acceleration/jerk limits, "
         "the field of view, stand-off, keep-out and floor. Writes OUT/joint_path.csv, "
-        "joint_path_ipo.csv (12 ms), camera_poses.tum, design.json and plots. Exits 1 if no "
-        "start converged to a feasible design.",
+        "joint_path_ipo.csv (12 ms, up to the last cycle before the end), camera_poses.tum, "
+        "design.json and plots. Exits 1 if no start found a feasible design.",
     )
     design.add_argument("cell", nargs="?", type=Path, help="CELL.json (see jaxtraj.io.cell)")
     design.add_argument("out", type=Path, help="output folder")

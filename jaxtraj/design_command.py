@@ -293,7 +293,9 @@ def write_design(out: str | Path, spec: CellSpec, result: dict, plots: bool = Tr
         "joint_limits": {
             "lower_deg": np.degrees(np.asarray(chain.lower)).tolist(),
             "upper_deg": np.degrees(np.asarray(chain.upper)).tolist(),
-            "velocity_deg_s": np.degrees(np.asarray(chain.velocity)).tolist(),
+            "velocity_deg_s (datasheet unless given)": np.degrees(
+                np.asarray(chain.velocity)
+            ).tolist(),
             "acceleration_deg_s2 (assumed unless given)": np.degrees(
                 np.asarray(chain.acceleration)
             ).tolist(),

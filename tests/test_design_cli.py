@@ -116,3 +116,46 @@ def test_cell_or_example_but_not_both(tmp_path, capsys):
     spec = cell_from_dict(_cell(estimator={"method": "smoother", "order": 1}))
     assert (spec.method, spec.order) == ("smoother", 1)
     assert cell_from_dict(spec.to_dict()).to_dict() == spec.to_dict()
+
+
+def test_design_example_writes_its_files(tmp_path):
+    """``jaxtraj design --example`` (12 images, one start) writes a joint path within the
+    limits, the same path at the 12 ms controller cycle, the camera poses the robot
+    reaches on it, and design.json, whose cell reads back."""
+    from jaxtraj.design_command import _chain
+    from jaxtraj.robot.kinematics import camera_pose
+
+    out = tmp_path / "d"
+    args = ["design", "--example", str(out), "--frames", "12", "--starts", "1", "--no-plots"]
+    code = main(args)
+    report = json.loads((out / "design.json").read_text())
+    assert code == 0 and report["max_violation"] <= 1e-3, report["max_violation"]
+    assert len(report["starts"]["converged"]) == 1
+    assert max(report["fine_grid_violation"].values()) <= 1e-3, report["fine_grid_violation"]
+    assert report["expected_worst_frame_error_m"] >= report["expected_mean_error_m"] > 0
+    spec = read_cell(out / "design.json")
+    np.testing.assert_allclose(spec.predicted, example_cell(frames=12).predicted, atol=1e-9)
+    path = np.loadtxt(out / "joint_path.csv", delimiter=",", skiprows=1)
+    assert path.shape == (12, 7)
+    np.testing.assert_allclose(path[:, 0], spec.times, atol=1e-6)
+    limits = report["joint_limits"]
+    assert np.all(path[:, 1:] >= limits["lower_deg"]) and np.all(path[:, 1:] <= limits["upper_deg"])
+    ipo = np.loadtxt(out / "joint_path_ipo.csv", delimiter=",", skiprows=1)
+    np.testing.assert_allclose(np.diff(ipo[:, 0]), 0.012, atol=1e-6)
+    assert ipo[0, 0] == spec.times[0] and ipo[-1, 0] > spec.times[-1] - 0.012
+    np.testing.assert_allclose(ipo[0, 1:], path[0, 1:], atol=1e-5)  # both start at q0
+    # the same path: the 12 ms samples interpolate the images' axes (up to the last cycle)
+    inside = path[:, 0] <= ipo[-1, 0]
+    assert inside.sum() >= 11
+    for j in range(1, 7):
+        fit = np.interp(path[inside, 0], ipo[:, 0], ipo[:, j])
+        np.testing.assert_allclose(fit, path[inside, j], atol=0.02)
+    tum = np.loadtxt(out / "camera_poses.tum")
+    assert tum.shape == (12, 8)
+    np.testing.assert_allclose(np.linalg.norm(tum[:, 4:], axis=1), 1.0, atol=1e-6)
+    chain = _chain(spec)
+    centres = [
+        np.asarray(camera_pose(chain, np.radians(q), spec.T_f_c, spec.T_w_base))[:3, 3]
+        for q in path[:, 1:]
+    ]
+    np.testing.assert_allclose(tum[:, 1:4], centres, atol=1e-5)
