@@ -246,9 +246,10 @@ def excess_text(excess, frames: int) -> str:
     out, worst, median, acc = excess
     if out:
         return f"no: {out} of {frames} images out of reach"
+    verdict = "no" if max(worst, acc) > 1.0 else "reached; the jumps within the limits"
     return (
-        f"no: jumps at up to {worst:.1f}x a joint's speed limit (median {median:.1f}x) "
-        f"and {acc:.0f}x its acceleration limit"
+        f"{verdict}: jumps at up to {worst:.1f}x a joint's speed limit (median "
+        f"{median:.1f}x) and {acc:.1f}x its acceleration limit (second differences)"
     )
 
 

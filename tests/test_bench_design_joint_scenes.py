@@ -88,3 +88,4 @@ def test_random_camera_is_mostly_out_of_reach_and_its_reachable_variant_is_reach
     assert np.all((distance >= spec.standoff[0]) & (distance <= spec.standoff[1])), distance
     np.testing.assert_allclose(P, np.asarray(spec.K) @ np.linalg.inv(T_w_c)[:, :3, :], atol=1e-9)
     assert bench_design_joint.excess_text((0, worst, median, acc), 8).startswith("no: jumps at")
+    assert bench_design_joint.excess_text((0, 0.8, 0.4, 0.9), 8).startswith("reached; the jumps")
