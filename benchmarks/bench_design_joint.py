@@ -186,19 +186,25 @@ def compare(args) -> int:
     return 0
 
 
-def random_camera(spec):
-    """The paper's random discontinuous camera about the scene's prediction: ``(P, T_w_c)``."""
+def random_camera(spec, key=None):
+    """The paper's random discontinuous camera about the scene's prediction (drawn with
+    ``key``, default the scene's seed): ``(P, T_w_c)``."""
     from jaxtraj import projection_matrix
     from jaxtraj.sim import random_discontinuous_camera
 
-    path = random_discontinuous_camera(
-        jax.random.PRNGKey(spec.seed), jnp.asarray(spec.predicted), standoff=spec.standoff
-    )
+    key = jax.random.PRNGKey(spec.seed) if key is None else key
+    path = random_discontinuous_camera(key, jnp.asarray(spec.predicted), standoff=spec.standoff)
     K = jnp.asarray(spec.K)
     P = jax.vmap(lambda R, t: projection_matrix(K, R, t))(path.R_c_w, path.t_c_w)
     T_w_c = jnp.zeros((P.shape[0], 4, 4), P.dtype).at[:, 3, 3].set(1.0)
     T_w_c = T_w_c.at[:, :3, :3].set(jnp.swapaxes(path.R_c_w, 1, 2))
     return P, T_w_c.at[:, :3, 3].set(path.centres)
+
+
+def flange_poses(cell, T_w_c):
+    """Flange poses in the robot's base frame (..., 4, 4) for camera poses ``T_w_c``."""
+    inv = np.linalg.inv
+    return inv(np.asarray(cell.T_w_base)) @ np.asarray(T_w_c) @ inv(np.asarray(cell.T_f_c))
 
 
 def joint_excess(spec, cell, q_start, T_w_c):
@@ -212,13 +218,8 @@ def joint_excess(spec, cell, q_start, T_w_c):
     from jaxtraj.robot.ik import inverse_kinematics
 
     chain = cell.chain
-    T_base_f = (
-        np.linalg.inv(np.asarray(cell.T_w_base))
-        @ np.asarray(T_w_c)
-        @ np.linalg.inv(np.asarray(cell.T_f_c))
-    )
     q, qs, reached = np.asarray(q_start), [], []
-    for T in T_base_f:
+    for T in flange_poses(cell, T_w_c):
         r = inverse_kinematics(chain, T, q, position_tol=1e-6, rotation_tol=1e-6)
         reached.append(bool(r.success))
         if r.success:
@@ -229,12 +230,10 @@ def joint_excess(spec, cell, q_start, T_w_c):
     nan = float("nan")
     if not np.any(both):
         return int(np.sum(~reached)), nan, nan, nan
-    t = np.asarray(spec.times)
-    dt = np.diff(t)
-    speed = np.abs(np.diff(qs, axis=0)) / dt[:, None] / np.asarray(chain.velocity)[None]
-    worst = np.max(speed[both], axis=1)
-    three = both[1:] & both[:-1]
+    dt = np.diff(np.asarray(spec.times))
     v = np.diff(qs, axis=0) / dt[:, None]
+    worst = np.max(np.abs(v[both]) / np.asarray(chain.velocity)[None], axis=1)
+    three = both[1:] & both[:-1]
     acc = np.abs(np.diff(v, axis=0)) / (0.5 * (dt[1:] + dt[:-1]))[:, None]
     acc = acc / np.asarray(chain.acceleration)[None]
     worst_acc = float(np.max(acc[three])) if np.any(three) else nan
@@ -259,19 +258,10 @@ def random_reachable_camera(spec, cell, q_start, candidates=32):
     pose the robot reaches within its joint limits; ``(P, T_w_c, reached)`` with
     ``reached`` the images where some draw was reachable (the others keep the first draw).
     A comparison that ignores only the speed of the jumps, not where the camera can be."""
-    from jaxtraj import projection_matrix
     from jaxtraj.robot.ik import inverse_kinematics
-    from jaxtraj.sim import random_discontinuous_camera
 
     keys = jax.random.split(jax.random.PRNGKey(spec.seed + 1), candidates)
-    pred = jnp.asarray(spec.predicted)
-    paths = [random_discontinuous_camera(k, pred, standoff=spec.standoff) for k in keys]
-    R_c_w = jnp.stack([p.R_c_w for p in paths])  # (M, F, 3, 3)
-    t_c_w = jnp.stack([p.t_c_w for p in paths])
-    centres = jnp.stack([p.centres for p in paths])
-    T_w_c = jnp.zeros((*centres.shape[:2], 4, 4), centres.dtype).at[..., 3, 3].set(1.0)
-    T_w_c = T_w_c.at[..., :3, :3].set(jnp.swapaxes(R_c_w, -1, -2)).at[..., :3, 3].set(centres)
-    T_base_f = jnp.linalg.inv(cell.T_w_base) @ T_w_c @ jnp.linalg.inv(cell.T_f_c)
+    P, T_w_c = (jnp.stack(a) for a in zip(*(random_camera(spec, k) for k in keys), strict=True))
     ik = jax.jit(
         jax.vmap(
             lambda T: (
@@ -281,12 +271,11 @@ def random_reachable_camera(spec, cell, q_start, candidates=32):
             )
         )
     )
-    ok = np.asarray(ik(T_base_f.reshape(-1, 4, 4))).reshape(centres.shape[:2])  # (M, F)
+    T_base_f = jnp.asarray(flange_poses(cell, T_w_c)).reshape(-1, 4, 4)
+    ok = np.asarray(ik(T_base_f)).reshape(P.shape[:2])  # (candidates, F)
     pick = np.argmax(ok, axis=0)
-    frames = np.arange(pred.shape[0])
-    K = jnp.asarray(spec.K)
-    P = jax.vmap(lambda R, t: projection_matrix(K, R, t))(R_c_w[pick, frames], t_c_w[pick, frames])
-    return P, T_w_c[pick, frames], ok[pick, frames]
+    frames = np.arange(P.shape[1])
+    return P[pick, frames], T_w_c[pick, frames], ok[pick, frames]
 
 
 def use_known_layout(spec):
