@@ -12,7 +12,11 @@ import pytest
 from jaxtraj import dct_basis, depth_uncertainty, look_at
 from jaxtraj.design import plausible_trajectories
 from jaxtraj.design.bspline import bspline_basis, clamped_knots
-from jaxtraj.design.joint_optimise import design_joint_path, evaluate_joint_path
+from jaxtraj.design.joint_optimise import (
+    STATIONARITY_TOL,
+    design_joint_path,
+    evaluate_joint_path,
+)
 from jaxtraj.design.joint_path import (
     JOINT_CONSTRAINTS,
     JointPathModel,
@@ -135,18 +139,24 @@ def test_constraint_values_against_direct_computation(scene, rng):
 
 
 def test_design_converges_and_holds_on_a_10x_finer_grid(scene, rng):
-    """Maximise eta under every limit: each start converges (violation and KKT
-    stationarity below 1e-3), the constraints hold on a grid 10x finer than the design's,
-    and the expected error falls; a warm re-plan from the design converges too."""
+    """Maximise eta under every limit: each start converges (violation below 1e-3, KKT
+    stationarity below the default tolerance), the constraints hold on a grid 10x finer
+    than the design's, and the expected error falls; a warm re-plan from the design
+    converges too.
+
+    The design grid has 20 points per image interval (0.045 s apart; the built-in cell's
+    default grid is 0.017 s): the 1 % grid margin covers a constraint's rise between grid
+    points only on a fine enough grid, and at 10 per image (0.09 s) the floor, once active,
+    rose 1.3 mm (1.3 % of its 0.1 m clearance) between them."""
     times, q0 = scene["times"], scene["q0"]
-    model = JointPathModel.create(times, q0, n_control=8, grid_per_image=10)
+    model = JointPathModel.create(times, q0, n_control=8, grid_per_image=20)
     cell, pred, samples, basis = scene["cell"], scene["predicted"], scene["samples"], scene["basis"]
     inits = jnp.asarray(np.stack([np.zeros(model.shape), rng.normal(0, 0.02, model.shape)]))
     kwargs = {"objective": "eta", "penalties": (10.0, 30.0, 100.0, 100.0, 100.0, 100.0)}
     best, designs = design_joint_path(model, cell, pred, samples, basis, inits, **kwargs)
     assert np.all(np.asarray(designs.converged))
     assert np.all(np.asarray(designs.max_violation) <= 1e-3)
-    assert np.all(np.asarray(designs.stationarity) <= 1e-3)
+    assert np.all(np.asarray(designs.stationarity) <= STATIONARITY_TOL)
     fine = JointPathModel.create(times, q0, n_control=8, grid_per_image=100)
     values = joint_constraint_values(fine, best.theta, cell, pred, samples)
     worst = {k: float(jnp.max(v)) for k, v in values.items()}

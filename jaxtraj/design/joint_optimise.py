@@ -179,6 +179,14 @@ RHO_CHECK = 1e-8
 #: step of a round follows the raw gradient, which can be huge where the objective is
 #: near a singularity (eta -> 0 for a camera that does not move)
 MAX_STEP = 0.2
+#: default KKT stationarity tolerance, ``||grad f + sum_i lambda_i grad g_i||_inf`` with
+#: ``f`` the log of the objective and the parameters in radians: moving any control point
+#: by 0.01 rad then changes the objective by at most 0.01 % to first order. Measured on
+#: the built-in cell (DCT, F = 60, 8 starts): the best design's expected error is 6.426 mm
+#: at this tolerance and 6.419 mm at 1e-3 (0.1 %, far below the error model's 15 %), while
+#: a warm re-plan of one start takes 0.4 s instead of 3-4 s (the last 1e-2 -> 1e-3 costs
+#: most of the BFGS steps on the penalty's kinks).
+STATIONARITY_TOL = 1e-2
 _CHECK, _ROUND, _SEARCH = 0, 1, 2  # what an evaluation of the solver's loop is for
 
 
@@ -476,7 +484,7 @@ def design_joint_path(
     rtol: float = 1e-9,
     grid_margin: float = 0.01,
     feasibility_tol: float = 1e-3,
-    stationarity_tol: float = 1e-3,
+    stationarity_tol: float = STATIONARITY_TOL,
 ) -> tuple[JointPathDesign, JointPathDesign]:
     """Design a joint-space camera path from several starts at once.
 
@@ -516,8 +524,14 @@ def design_joint_path(
         grid_margin: the design holds every normalised constraint to ``<= -grid_margin``
             on its grid (1 % of the limit by default), so that it still holds between the
             grid points (checked on a 10x finer grid in the tests); reports use the
-            unmargined values.
-        feasibility_tol, stationarity_tol: the convergence test.
+            unmargined values. Between points ``h`` apart a constraint rises by at most
+            ``h^2 / 8`` times its second derivative, so the margin covers that rise only
+            on a fine enough grid (``JointPathModel.create(grid_per_image=)``): on a test
+            scene with points 0.09 s apart an active floor constraint rose 1.3 mm (1.3 %
+            of its 0.1 m clearance) between them; the built-in cell's are 0.017 s apart.
+        feasibility_tol, stationarity_tol: the convergence test (largest normalised
+            violation, and KKT stationarity of the log objective per radian; see
+            :data:`STATIONARITY_TOL`).
 
     Returns:
         ``(best, designs)``: the best feasible design (lowest objective; the least
