@@ -232,13 +232,31 @@ def test_design_program_evaluates_objective_and_constraints_at_one_place(scene, 
     assert traced == {"objective": 1, "constraints": 1}
 
 
+def test_design_report_from_the_search_equals_an_independent_evaluation(scene, rng):
+    """The designs' errors and constraint values come from the search's last accepted
+    evaluation (no second program); they equal evaluate_joint_path of the same paths."""
+    model = JointPathModel.create(scene["times"], scene["q0"], n_control=8, grid_per_image=2)
+    cell, data = scene["cell"], (scene["predicted"], scene["samples"], scene["basis"])
+    inits = jnp.asarray(np.stack([np.zeros(model.shape), rng.normal(0, 0.02, model.shape)]))
+    _, designs = design_joint_path(model, cell, *data, inits, penalties=(10.0, 30.0), inner_steps=5)
+    again = evaluate_joint_path(model, designs.theta, cell, *data)
+    for name in ("expected_error", "expected_mean_error", "expected_worst_error"):
+        np.testing.assert_allclose(getattr(designs, name), getattr(again, name), rtol=1e-12)
+    np.testing.assert_allclose(designs.violation, again.violation, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(designs.max_violation, again.max_violation, rtol=0, atol=1e-12)
+    np.testing.assert_array_equal(designs.feasible, again.feasible)
+    assert np.all(np.isfinite(np.asarray(designs.expected_worst_error)))
+
+
 def test_design_ends_where_the_objective_is_not_finite(scene, monkeypatch):
     """A start whose objective is NaN everywhere ends (every line search fails, round
     after round) and is reported as not converged with its parameters unchanged, instead
     of looping."""
     from jaxtraj.design import joint_optimise as jo
 
-    monkeypatch.setattr(jo._Problem, "objective", lambda self, theta: jnp.nan * jnp.sum(theta))
+    monkeypatch.setattr(
+        jo._Problem, "objective", lambda self, theta: (jnp.nan * jnp.sum(theta), jnp.zeros(3))
+    )
     model = JointPathModel.create(scene["times"], scene["q0"], n_control=8, grid_per_image=2)
     inits = jnp.zeros((1, *model.shape))
     best, designs = design_joint_path(

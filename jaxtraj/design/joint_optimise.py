@@ -25,6 +25,7 @@ before, each round taking its 500 steps).
 
 from __future__ import annotations
 
+import itertools
 from typing import NamedTuple
 
 import equinox as eqx
@@ -141,10 +142,6 @@ class _Problem(eqx.Module):
         order = int(self.estimator[-1])
         return _smoother_frame_errors2(P, self.samples, self.model.times, self.pixel_sigma, order)
 
-    def errors(self, theta):
-        """``(rms, mean)`` expected errors [m] of the estimator for the path ``theta``."""
-        return self._errors_from(self._frame_terms(theta))
-
     def _errors_from(self, terms):
         return _pose_metrics(terms) if self.estimator == "pose" else _metrics(terms)
 
@@ -157,15 +154,24 @@ class _Problem(eqx.Module):
         return (*self._errors_from(terms), worst)
 
     def objective(self, theta):
+        """The objective (minimised) and the (3,) expected errors ``(rms, mean, worst)``
+        [m] of :meth:`report_errors` from the same evaluation of the frames, so that the
+        design's report needs no second program; NaN for ``eta``, which does not compute
+        them (its report comes from :func:`_evaluate`)."""
         if self.kind == "eta":  # maximise the geometric mean of eta over the samples
             c = camera_poses(self.cell, self.model.joints_at_images(theta))[:, :3, 3]
             etas = jax.vmap(lambda x: reconstructibility(c, x, self.basis))(self.samples)
-            return -jnp.mean(jnp.log(etas))
-        rms, mean = self.errors(theta)
-        return jnp.log(mean if self.kind == "mean_error" else rms)
+            return -jnp.mean(jnp.log(etas)), jnp.full(3, jnp.nan, theta.dtype)
+        rms, mean, worst = self.report_errors(theta)
+        value = jnp.log(mean if self.kind == "mean_error" else rms)
+        return value, jax.lax.stop_gradient(jnp.stack([rms, mean, worst]))
+
+    def constraint_values(self, theta):
+        """The unmargined values per constraint (see :func:`joint_constraint_values`)."""
+        return joint_constraint_values(self.model, theta, self.cell, self.predicted, self.visible)
 
     def constraints(self, theta):
-        values = joint_constraint_values(self.model, theta, self.cell, self.predicted, self.visible)
+        values = self.constraint_values(theta)
         return jnp.concatenate([values[name] for name in JOINT_CONSTRAINTS]) + self.margin
 
 
@@ -200,6 +206,7 @@ class _Search(NamedTuple):
     f: Float[Array, ""]  # the Lagrangian there (this round's multipliers and penalty)
     g: Float[Array, " n"]  # its gradient
     c: Float[Array, " G"]  # the constraint values there
+    err: Float[Array, " 3"]  # the expected errors there (see _Problem.objective)
     H: Float[Array, "n n"]  # inverse Hessian estimate
     p: Float[Array, " n"]  # search direction
     alpha: Float[Array, ""]  # step along p tried next
@@ -210,11 +217,13 @@ class _Search(NamedTuple):
 
 
 def _lagrangian(x, lam, rho, problem, shape):
-    """Augmented Lagrangian of the flattened parameters, and the constraint values."""
+    """Augmented Lagrangian of the flattened parameters, and (the constraint values, the
+    expected errors)."""
     theta = x.reshape(shape)
     g = problem.constraints(theta)
     shifted = jnp.maximum(lam + rho * g, 0.0)
-    return problem.objective(theta) + jnp.sum(shifted**2 - lam**2) / (2 * rho), g
+    f, err = problem.objective(theta)
+    return f + jnp.sum(shifted**2 - lam**2) / (2 * rho), (g, err)
 
 
 @eqx.filter_jit
@@ -245,12 +254,15 @@ def _design(inits, lams, problem: _Problem, rhos, inner_steps, rtol, feasibility
     n = int(np.prod(shape))
     eye = jnp.eye(n, dtype=dtype)
     value_grad = jax.value_and_grad(_lagrangian, has_aux=True)
+    # where each constraint's values lie in the flat vector (shapes only: traced once)
+    shapes = jax.eval_shape(problem.constraint_values, inits[0])
+    bounds = list(itertools.pairwise(np.cumsum([0] + [shapes[k].size for k in JOINT_CONSTRAINTS])))
 
     def step(s: _Search) -> _Search:
         search = s.phase == _SEARCH
         rho = jnp.where(s.phase == _CHECK, jnp.asarray(RHO_CHECK, dtype), rhos[s.i])
         xt = jnp.where(search, s.x + s.alpha * s.p, s.x)
-        (ft, ct), gt = value_grad(xt, s.lam, rho, problem, shape)
+        (ft, (ct, et)), gt = value_grad(xt, s.lam, rho, problem, shape)
         finite = jnp.isfinite(ft) & jnp.all(jnp.isfinite(gt))
         slope = s.g @ s.p
         armijo = search & finite & (ft <= s.f + ARMIJO * s.alpha * slope)
@@ -267,6 +279,7 @@ def _design(inits, lams, problem: _Problem, rhos, inner_steps, rtol, feasibility
         f = jnp.where(accept, ft, s.f)
         g = jnp.where(accept, gt, s.g)
         c = jnp.where(accept, ct, s.c)
+        err = jnp.where(accept, et, s.err)
         p = -H @ g
         descent = g @ p < 0
         H = jnp.where(descent, H, eye)
@@ -306,6 +319,7 @@ def _design(inits, lams, problem: _Problem, rhos, inner_steps, rtol, feasibility
             f=f,
             g=g,
             c=c,
+            err=err,
             H=H,
             p=p,
             alpha=alpha,
@@ -326,6 +340,7 @@ def _design(inits, lams, problem: _Problem, rhos, inner_steps, rtol, feasibility
             f=zero,
             g=jnp.zeros(n, dtype),
             c=jnp.zeros_like(lam0),
+            err=jnp.zeros(3, dtype),
             H=eye,
             p=jnp.zeros(n, dtype),
             alpha=jnp.ones((), dtype),
@@ -335,9 +350,31 @@ def _design(inits, lams, problem: _Problem, rhos, inner_steps, rtol, feasibility
             done=jnp.zeros((), bool),
         )
         s = jax.lax.while_loop(lambda s: ~s.done, step, start)
-        return s.x.reshape(shape), s.lam_out, jnp.max(jnp.abs(s.g)), s.rounds
+        values = s.c - problem.margin  # the reports use the unmargined values
+        viol = jnp.stack([jnp.max(values[a:b]) for a, b in bounds])
+        return s.x.reshape(shape), s.lam_out, jnp.max(jnp.abs(s.g)), s.rounds, viol, s.err
 
     return jax.vmap(one)(inits, lams)
+
+
+def _judged(theta, viol, errors, stat, lam, n, feasibility_tol, stationarity_tol):
+    """One :class:`JointPathDesign` from its largest value per constraint ``viol`` and its
+    expected errors ``(rms, mean, worst)``."""
+    worst = jnp.maximum(jnp.max(viol), 0.0)
+    feasible = (worst <= feasibility_tol) & jnp.isfinite(errors[0])
+    return JointPathDesign(
+        theta=theta,
+        expected_error=errors[0],
+        expected_mean_error=errors[1],
+        expected_worst_error=errors[2],
+        violation=viol,
+        max_violation=worst,
+        stationarity=stat,
+        converged=feasible & (stat <= stationarity_tol),
+        feasible=feasible,
+        multipliers=lam,
+        rounds=n,
+    )
 
 
 @eqx.filter_jit
@@ -347,24 +384,35 @@ def _evaluate(thetas, stationarity, lams, rounds, problem, feasibility_tol, stat
             problem.model, theta, problem.cell, problem.predicted, problem.visible
         )
         viol = jnp.stack([jnp.max(values[name]) for name in JOINT_CONSTRAINTS])
-        worst = jnp.maximum(jnp.max(viol), 0.0)
-        rms, mean, worst_error = problem.report_errors(theta)
-        feasible = (worst <= feasibility_tol) & jnp.isfinite(rms)
-        return JointPathDesign(
-            theta=theta,
-            expected_error=rms,
-            expected_mean_error=mean,
-            expected_worst_error=worst_error,
-            violation=viol,
-            max_violation=worst,
-            stationarity=stat,
-            converged=feasible & (stat <= stationarity_tol),
-            feasible=feasible,
-            multipliers=lam,
-            rounds=n,
-        )
+        errors = jnp.stack(problem.report_errors(theta))
+        return _judged(theta, viol, errors, stat, lam, n, feasibility_tol, stationarity_tol)
 
     return jax.vmap(one)(thetas, stationarity, lams, rounds)
+
+
+@eqx.filter_jit
+def _reported(thetas, stationarity, lams, rounds, viol, errors, tols):
+    """The designs from what the search's last accepted evaluation computed: the largest
+    (unmargined) value per constraint and the expected errors. A separate program for the
+    report (:func:`_evaluate`) took 6 s of tracing and compilation on the built-in cell, a
+    sixth of the whole design."""
+
+    def judge(*args):
+        return _judged(*args, *tols)
+
+    return jax.vmap(judge)(thetas, viol, errors, stationarity, lams, rounds)
+
+
+@eqx.filter_jit
+def _constraints_of(problem, theta):
+    return problem.constraints(theta)
+
+
+def _count_constraints(problem, theta) -> int:
+    """Number of constraint values (their shapes only). Through a module-level jit, so
+    that a problem of the same shapes is not traced again: tracing the constraints took
+    0.4 s, most of a warm re-plan's time."""
+    return jax.eval_shape(_constraints_of, problem, theta).shape[0]
 
 
 def _problem(
@@ -460,7 +508,7 @@ def evaluate_joint_path(
         layout=layout,
     )
     nan = jnp.full(thetas.shape[:1], jnp.nan, thetas.dtype)
-    n_values = jax.eval_shape(problem.constraints, thetas[0]).shape[0]
+    n_values = _count_constraints(problem, thetas[0])
     lams = jnp.zeros((thetas.shape[0], n_values), thetas.dtype)
     rounds = jnp.zeros(thetas.shape[:1], jnp.int32)
     return _evaluate(thetas, nan, lams, rounds, problem, feasibility_tol, 0.0)
@@ -556,7 +604,7 @@ def design_joint_path(
         layout,
     )
     rhos = jnp.asarray(penalties, inits.dtype)
-    n_values = jax.eval_shape(problem.constraints, inits[0]).shape[0]
+    n_values = _count_constraints(problem, inits[0])
     if multipliers is None:
         lams = jnp.zeros((inits.shape[0], n_values), inits.dtype)
     else:
@@ -565,13 +613,15 @@ def design_joint_path(
             raise ValueError(
                 f"multipliers: expected shape ({inits.shape[0]}, {n_values}), got {lams.shape}"
             )
-    thetas, lams, stationarity, rounds = _design(
+    thetas, lams, stationarity, rounds, viol, errors = _design(
         inits, lams, problem, rhos, inner_steps, rtol, feasibility_tol, stationarity_tol
     )
-    report = eqx.tree_at(lambda p: p.margin, problem, jnp.zeros_like(problem.margin))
-    designs = _evaluate(
-        thetas, stationarity, lams, rounds, report, feasibility_tol, stationarity_tol
-    )
+    tols = (feasibility_tol, stationarity_tol)
+    if objective == "eta":  # the search did not compute the errors
+        report = eqx.tree_at(lambda p: p.margin, problem, jnp.zeros_like(problem.margin))
+        designs = _evaluate(thetas, stationarity, lams, rounds, report, *tols)
+    else:
+        designs = _reported(thetas, stationarity, lams, rounds, viol, errors, tols)
     metric = designs.expected_error if objective == "error" else designs.expected_mean_error
     score = jnp.where(designs.feasible, metric, jnp.inf)
     i = jnp.where(jnp.any(designs.feasible), jnp.argmin(score), jnp.argmin(designs.max_violation))
