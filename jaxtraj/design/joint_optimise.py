@@ -164,7 +164,7 @@ class _Problem(eqx.Module):
             return -jnp.mean(jnp.log(etas)), jnp.full(3, jnp.nan, theta.dtype)
         rms, mean, worst = self.report_errors(theta)
         value = jnp.log(mean if self.kind == "mean_error" else rms)
-        return value, jax.lax.stop_gradient(jnp.stack([rms, mean, worst]))
+        return value, jnp.stack([rms, mean, worst])
 
     def constraint_values(self, theta):
         """The unmargined values per constraint (see :func:`joint_constraint_values`)."""
@@ -254,9 +254,8 @@ def _design(inits, lams, problem: _Problem, rhos, inner_steps, rtol, feasibility
     n = int(np.prod(shape))
     eye = jnp.eye(n, dtype=dtype)
     value_grad = jax.value_and_grad(_lagrangian, has_aux=True)
-    # where each constraint's values lie in the flat vector (shapes only: traced once)
-    shapes = jax.eval_shape(problem.constraint_values, inits[0])
-    bounds = list(itertools.pairwise(np.cumsum([0] + [shapes[k].size for k in JOINT_CONSTRAINTS])))
+    # where each constraint's values lie in the flat vector
+    bounds = list(itertools.pairwise(np.cumsum((0, *_constraint_sizes(problem, inits[0])))))
 
     def step(s: _Search) -> _Search:
         search = s.phase == _SEARCH
@@ -380,9 +379,7 @@ def _judged(theta, viol, errors, stat, lam, n, feasibility_tol, stationarity_tol
 @eqx.filter_jit
 def _evaluate(thetas, stationarity, lams, rounds, problem, feasibility_tol, stationarity_tol):
     def one(theta, stat, lam, n):
-        values = joint_constraint_values(
-            problem.model, theta, problem.cell, problem.predicted, problem.visible
-        )
+        values = problem.constraint_values(theta)
         viol = jnp.stack([jnp.max(values[name]) for name in JOINT_CONSTRAINTS])
         errors = jnp.stack(problem.report_errors(theta))
         return _judged(theta, viol, errors, stat, lam, n, feasibility_tol, stationarity_tol)
@@ -404,15 +401,16 @@ def _reported(thetas, stationarity, lams, rounds, viol, errors, tols):
 
 
 @eqx.filter_jit
-def _constraints_of(problem, theta):
-    return problem.constraints(theta)
+def _constraint_values_of(problem, theta):
+    return problem.constraint_values(theta)
 
 
-def _count_constraints(problem, theta) -> int:
-    """Number of constraint values (their shapes only). Through a module-level jit, so
-    that a problem of the same shapes is not traced again: tracing the constraints took
-    0.4 s, most of a warm re-plan's time."""
-    return jax.eval_shape(_constraints_of, problem, theta).shape[0]
+def _constraint_sizes(problem, theta) -> tuple[int, ...]:
+    """Number of values of each constraint, in :data:`JOINT_CONSTRAINTS` order (their
+    shapes only). Through a module-level jit, so that a problem of the same shapes is not
+    traced again: tracing the constraints took 0.4 s, most of a warm re-plan's time."""
+    shapes = jax.eval_shape(_constraint_values_of, problem, theta)
+    return tuple(shapes[name].size for name in JOINT_CONSTRAINTS)
 
 
 def _problem(
@@ -508,7 +506,7 @@ def evaluate_joint_path(
         layout=layout,
     )
     nan = jnp.full(thetas.shape[:1], jnp.nan, thetas.dtype)
-    n_values = _count_constraints(problem, thetas[0])
+    n_values = sum(_constraint_sizes(problem, thetas[0]))
     lams = jnp.zeros((thetas.shape[0], n_values), thetas.dtype)
     rounds = jnp.zeros(thetas.shape[:1], jnp.int32)
     return _evaluate(thetas, nan, lams, rounds, problem, feasibility_tol, 0.0)
@@ -604,7 +602,7 @@ def design_joint_path(
         layout,
     )
     rhos = jnp.asarray(penalties, inits.dtype)
-    n_values = _count_constraints(problem, inits[0])
+    n_values = sum(_constraint_sizes(problem, inits[0]))
     if multipliers is None:
         lams = jnp.zeros((inits.shape[0], n_values), inits.dtype)
     else:
