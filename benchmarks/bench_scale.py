@@ -596,9 +596,14 @@ def vs_kernel(cfg: Config, workdir: Path, chunks: tuple[int, ...], repeats: int,
     includes the first chunk's compilation only on its first call). Medians over repeats.
     """
     from jaxtraj import reconstruct_points
+    from jaxtraj._batching import points_per_step
     from jaxtraj.cli import main as cli_main
     from jaxtraj.scale.chunked import NpyRows
-    from jaxtraj.solve import _reconstruct_points  # run_batch's kernel (padded rows allowed)
+    from jaxtraj.solve import (
+        MAP_BATCH,
+        MAP_BATCH_ACCELERATOR,
+        _reconstruct_points,  # run_batch's kernel (padded rows allowed)
+    )
 
     ds = workdir / "ds-vs-kernel"
     log(f"vs-kernel: writing dataset N = {cfg.n}, F = {cfg.F}")
@@ -664,6 +669,7 @@ def vs_kernel(cfg: Config, workdir: Path, chunks: tuple[int, ...], repeats: int,
 
     # Stage times of one serial pass (no overlap), per point, at the largest chunk size.
     c = max(chunks)
+    per_step = points_per_step(MAP_BATCH, MAP_BATCH_ACCELERATOR, P)
     tracks = NpyRows(ds / "tracks.npy")
     stages = dict.fromkeys(("read", "mask and pad", "solve", "copy to host", "write", "fsync"), 0.0)
     outs = {name: NpyRows(workdir / f"vk-{c}" / f"{name}.npy", "r+b")
@@ -680,7 +686,9 @@ def vs_kernel(cfg: Config, workdir: Path, chunks: tuple[int, ...], repeats: int,
                 chunk = np.concatenate([chunk, np.zeros((c - (b - a), cfg.F, 2))])
                 ok = np.concatenate([ok, np.zeros((c - (b - a), cfg.F), bool)])
             t.append(time.perf_counter())
-            res = block(_reconstruct_points(P, chunk, basis, ok * 1.0, 20.0, 1, True, None))
+            res = block(
+                _reconstruct_points(P, chunk, basis, ok * 1.0, 20.0, 1, True, None, per_step)
+            )
             t.append(time.perf_counter())
             res = jax.device_get(res)
             t.append(time.perf_counter())

@@ -35,7 +35,8 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float, Int
 
-from ._checks import check_finite, check_shape, check_tracks, is_concrete
+from ._batching import map_points, points_per_step
+from ._checks import check_finite, check_shape, check_tracks, fewest_observed, is_concrete
 from ._linalg import cholesky_small
 from ._spd import inverse_cholesky, matvec, top_eigenvalue, vecmat
 
@@ -213,9 +214,8 @@ def _validate(P, uv, basis, weights, batch: tuple = (), count_check: bool = True
         return
     if not count_check:
         return
-    w = np.ones(np.shape(uv)[:-1]) if weights is None else np.asarray(weights)
     k = jnp.shape(basis)[1]
-    n_obs = int(np.min(np.sum(w > 0, axis=-1)))
+    n_obs = fewest_observed(uv, weights)
     if 2 * n_obs < 3 * k:
         raise ValueError(
             f"basis: k={k} is too large for {n_obs} observed frame(s); the system "
@@ -467,15 +467,16 @@ def _reprojection_rms(P, uv, points, observed):
     return jnp.sqrt(jnp.sum(jnp.where(observed, err2, 0.0)) / n)
 
 
-#: points per step of the batched driver's loop over points (see :func:`reconstruct_points`;
-#: 8 was 1.3-2.2x faster than 0 (a plain vmap) and 1 at F = 150, k = 10, N = 2000 on 2 cores)
+#: points per step of the batched driver's loop over points on a CPU (see
+#: :func:`reconstruct_points` and :mod:`jaxtraj._batching`; 8 was 1.3-2.2x faster than 0 (a
+#: plain vmap) and 1 at F = 150, k = 10, N = 2000 on 2 cores)
 MAP_BATCH = 8
+#: the same on a GPU or other accelerator (0: one vmap over all points)
+MAP_BATCH_ACCELERATOR = 0
 
 
 @functools.partial(jax.jit, static_argnames=("refine", "diagnostics", "map_batch"))
-def _reconstruct_points(
-    P, uv, basis, weights, max_gain, refine, diagnostics, penalty, map_batch=MAP_BATCH
-):
+def _reconstruct_points(P, uv, basis, weights, max_gain, refine, diagnostics, penalty, map_batch):
     """The batched kernel; ``penalty`` is None, shared (k,) or one per point (N, k)."""
     n = uv.shape[0]
     if penalty is not None and penalty.ndim == 1:
@@ -486,9 +487,7 @@ def _reconstruct_points(
         u, w, N, b, p = args
         return _finish(P, u, basis, w, N, b, max_gain, p, refine, diagnostics)
 
-    if map_batch == 0:
-        return jax.vmap(finish)((uv, weights, N, b, penalty))
-    return jax.lax.map(finish, (uv, weights, N, b, penalty), batch_size=map_batch)
+    return map_points(finish, (uv, weights, N, b, penalty), map_batch)
 
 
 def reconstruct_points(
@@ -506,10 +505,12 @@ def reconstruct_points(
 
     Equivalent to a loop of :func:`reconstruct` over points. The per-frame sums of all
     points are one large matrix product; the small per-point work (factorisation, solve,
-    refinement, gain) then runs as a loop over groups of :data:`MAP_BATCH` points
+    refinement, gain) then runs, on a CPU, as a loop over groups of :data:`MAP_BATCH` points
     (``lax.map``), which keeps each group's matrices in cache and lets XLA:CPU compile the
     loop body into one kernel (see :mod:`jaxtraj._xla`); ``jax.vmap(reconstruct)`` gives the
-    same numbers but runs every step of the factorisation over all N points in turn.
+    same numbers but runs every step of the factorisation over all N points in turn. On a
+    GPU the points go in groups of :data:`MAP_BATCH_ACCELERATOR` (0: all at once), since
+    there a loop of small groups leaves the device idle (:mod:`jaxtraj._batching`).
     Fields of the result gain a leading axis of size N.
     """
     batch = (jnp.shape(uv)[0] if jnp.ndim(uv) == 3 else None,)
@@ -518,4 +519,5 @@ def reconstruct_points(
     w = jnp.ones(uv_.shape[:2], P_.dtype) if weights is None else jnp.asarray(weights, P_.dtype)
     pen = None if penalty is None else jnp.asarray(penalty, P_.dtype)
     gain = jnp.asarray(max_gain, P_.dtype)
-    return _reconstruct_points(P_, uv_, basis_, w, gain, refine, diagnostics, pen)
+    per_step = points_per_step(MAP_BATCH, MAP_BATCH_ACCELERATOR, uv_)
+    return _reconstruct_points(P_, uv_, basis_, w, gain, refine, diagnostics, pen, per_step)

@@ -69,11 +69,11 @@ data drawn from the prior, which made the posterior 2x too wide; half decades: 8
 from __future__ import annotations
 
 import equinox as eqx
-import jax
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float, Int
 
+from .._batching import map_points, points_per_step
 from .._checks import is_concrete
 from ..solve import Status
 from ._common import as_float, check_loss, check_positive, normalise_cameras
@@ -94,7 +94,8 @@ ORDERS = (1, 2, 3)
 MIN_OBSERVED = 3  # frames with a detection per track (raised outside jit)
 DCT_KS = (4, 6, 9, 12)  # candidate DCT sizes (module notes)
 START_SD = (1.0, 1.0, 10.0)  # start prior of the evidence: m, m/s, m/s^2 (module notes)
-MAP_BATCH = 8  # points per group of the batched driver (lax.map)
+MAP_BATCH = 8  # points per group of the batched driver's loop on a CPU (lax.map)
+MAP_BATCH_ACCELERATOR = 0  # the same on an accelerator; 0: all at once (jaxtraj._batching)
 
 
 class PointEstimate(eqx.Module):
@@ -274,15 +275,15 @@ def _estimate_one(P, C, uv, times, w, orders, dct_ks, tau, opts):
 
 
 @eqx.filter_jit
-def _estimate(P, uv, times, weights, orders, dct_ks, tau, opts):
+def _estimate(P, uv, times, weights, orders, dct_ks, tau, opts, per_step):
     C = camera_centres(P)
 
     def one(args):
         return _estimate_one(P, C, args[0], times, args[1], orders, dct_ks, tau, opts)
 
-    # groups of MAP_BATCH points (lax.map): one vmap over thousands of points makes every
-    # step of the smoothers stream all points' arrays through memory
-    return jax.lax.map(one, (uv, weights), batch_size=MAP_BATCH)
+    # on a CPU, groups of MAP_BATCH points (lax.map): one vmap over thousands of points
+    # makes every step of the smoothers stream all points' arrays through memory
+    return map_points(one, (uv, weights), per_step)
 
 
 def estimate_points(
@@ -369,6 +370,6 @@ def estimate_points(
         depth_guess=jnp.asarray(depth_guess, dtype),
         criterion="ml",
     )
-    return _estimate(
-        P, uv, times, w, orders, dct_ks, jnp.asarray(max_depth_uncertainty, dtype), opts
-    )
+    tau = jnp.asarray(max_depth_uncertainty, dtype)
+    per_step = points_per_step(MAP_BATCH, MAP_BATCH_ACCELERATOR, uv)
+    return _estimate(P, uv, times, w, orders, dct_ks, tau, opts, per_step)

@@ -25,9 +25,17 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float, Int
 
+from .._batching import map_points, points_per_step
 from .._checks import check_finite, check_shape, check_tracks
 from ..basis import DCTBasis
-from ..solve import Reconstruction, _reconstruct_points, _reprojection_rms, reconstruct
+from ..solve import (
+    MAP_BATCH,
+    MAP_BATCH_ACCELERATOR,
+    Reconstruction,
+    _reconstruct_points,
+    _reprojection_rms,
+    reconstruct,
+)
 from ._depth import flag_undetermined_depth
 from .select_k import check_rule
 
@@ -165,17 +173,26 @@ def reconstruct_regularised(
     return flag_undetermined_depth(res, P, times, order), basis, choice
 
 
-@functools.partial(jax.jit, static_argnames=("healthy_gain", "cv_tracks"))
-def _regularised_points(P, uv, Phi, w, rough, grid, held, healthy_gain, cv_tracks):
+#: tracks per step of the cross-validation loop on a CPU and on an accelerator: under one
+#: vmap every track's folds x grid systems (3k x 3k each) would be held at once (18 GB for
+#: 256 tracks at k = 60), so the accelerator's groups are bounded too
+CV_BATCH = 4
+CV_BATCH_ACCELERATOR = 64
+
+
+@functools.partial(
+    jax.jit, static_argnames=("healthy_gain", "cv_tracks", "cv_per_step", "per_step")
+)
+def _regularised_points(
+    P, uv, Phi, w, rough, grid, held, healthy_gain, cv_tracks, cv_per_step, per_step
+):
     # cv_tracks: None (a weight per point) or the indices of the tracks whose mean
-    # criterion chooses one shared weight. A loop over small groups of points: under one
-    # vmap every point's folds x grid systems (3k x 3k each) would be held at once (18 GB
-    # for 256 points at k = 60).
+    # criterion chooses one shared weight.
     sel = slice(None) if cv_tracks is None else np.asarray(cv_tracks)
-    choice = jax.lax.map(
+    choice = map_points(
         lambda a: _cv(P, a[0], Phi, a[1], rough, grid, held, healthy_gain),
         (uv[sel], w[sel]),
-        batch_size=4,
+        cv_per_step,
     )
     if cv_tracks is None:
         lam = choice.lam
@@ -193,7 +210,7 @@ def _regularised_points(P, uv, Phi, w, rough, grid, held, healthy_gain, cv_track
         )
     pen = lam[:, None] * rough[None, :]
     max_gain = jnp.asarray(20.0, P.dtype)
-    return _reconstruct_points(P, uv, Phi, w, max_gain, 1, True, pen), choice
+    return _reconstruct_points(P, uv, Phi, w, max_gain, 1, True, pen, per_step), choice
 
 
 def _spread_tracks(n: int, m: int | None) -> tuple[int, ...]:
@@ -265,14 +282,19 @@ def reconstruct_regularised_points(
     P = jnp.asarray(P, dtype)
     w = jnp.ones(np.shape(uv)[:2], dtype) if weights is None else jnp.asarray(weights, dtype)
     uv = jnp.where(w[..., None] > 0, jnp.asarray(uv, dtype), 0.0)
+    per_step = points_per_step(MAP_BATCH, MAP_BATCH_ACCELERATOR, uv)
     if lam is not None:
         pen = jnp.asarray(lam, dtype) * rough
-        res = _reconstruct_points(P, uv, Phi, w, jnp.asarray(20.0, dtype), 1, True, pen)
+        gain = jnp.asarray(20.0, dtype)
+        res = _reconstruct_points(P, uv, Phi, w, gain, 1, True, pen, per_step)
         return flag_undetermined_depth(res, P, times, order), basis, None
     grid = jnp.logspace(-4, 10, 15, dtype=dtype) if grid is None else jnp.asarray(grid, dtype)
     check_shape("grid", grid, (None,), "(G,) penalty weights")
     held = jnp.asarray(_fold_masks(F, folds))
     healthy = float(healthy_gain) if rule == "gain_weighted" else None
     tracks = _spread_tracks(np.shape(uv)[0], cv_points) if shared else None
-    res, choice = _regularised_points(P, uv, Phi, w, rough, grid, held, healthy, tracks)
+    cv_per_step = points_per_step(CV_BATCH, CV_BATCH_ACCELERATOR, uv)
+    res, choice = _regularised_points(
+        P, uv, Phi, w, rough, grid, held, healthy, tracks, cv_per_step, per_step
+    )
     return flag_undetermined_depth(res, P, times, order), basis, choice

@@ -28,6 +28,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float, Int
 
+from .._batching import map_points, points_per_step
 from .._checks import check_tracks
 from .._spd import matvec, vecmat
 from ..basis import dct_basis
@@ -78,8 +79,10 @@ def _check(P, uv, times, weights, ks, folds=2):
     return tuple(int(k) for k in ks)
 
 
-#: points per step of the batched driver's loop (see :func:`jaxtraj.reconstruct_points`)
-_MAP_BATCH = 8
+#: points per step of the batched driver's loop on a CPU and on an accelerator (0: all at
+#: once; see :mod:`jaxtraj._batching`)
+MAP_BATCH = 8
+MAP_BATCH_ACCELERATOR = 0
 
 
 def _prefix_solve(W, d, N, b, k):
@@ -244,8 +247,10 @@ def select_k_gain(
     )
 
 
-@functools.partial(jax.jit, static_argnames=("ks", "folds", "max_gain", "rule", "healthy_gain"))
-def _select_k_points(P, uv, times, weights, ks, folds, max_gain, rule, healthy_gain):
+@functools.partial(
+    jax.jit, static_argnames=("ks", "folds", "max_gain", "rule", "healthy_gain", "per_step")
+)
+def _select_k_points(P, uv, times, weights, ks, folds, max_gain, rule, healthy_gain, per_step):
     def one(u, w):
         return select_k_cv(
             P,
@@ -259,7 +264,7 @@ def _select_k_points(P, uv, times, weights, ks, folds, max_gain, rule, healthy_g
             healthy_gain=healthy_gain,
         )
 
-    return jax.lax.map(lambda a: one(*a), (uv, weights), batch_size=_MAP_BATCH)
+    return map_points(lambda a: one(*a), (uv, weights), per_step)
 
 
 def select_k_points(
@@ -294,4 +299,7 @@ def select_k_points(
     check_rule(rule, healthy_gain)
     P, uv, times, weights = as_float(P, uv, times, weights)
     w = jnp.ones(uv.shape[:2], P.dtype) if weights is None else weights
-    return _select_k_points(P, uv, times, w, ks, folds, float(max_gain), rule, float(healthy_gain))
+    per_step = points_per_step(MAP_BATCH, MAP_BATCH_ACCELERATOR, uv)
+    return _select_k_points(
+        P, uv, times, w, ks, folds, float(max_gain), rule, float(healthy_gain), per_step
+    )

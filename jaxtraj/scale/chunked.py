@@ -40,8 +40,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .._batching import points_per_step
 from ..basis import dct_basis
-from ..solve import _reconstruct_points
+from ..solve import MAP_BATCH, MAP_BATCH_ACCELERATOR, _reconstruct_points
 
 __all__ = ["BatchSummary", "NpyRows", "run_batch", "write_dataset"]
 
@@ -256,10 +257,12 @@ def run_batch(
         split, same = NamedSharding(mesh, Pspec("points")), NamedSharding(mesh, Pspec())
         P_d, basis = jax.device_put(P_d, same), jax.device_put(basis, same)
 
+    per_step = points_per_step(MAP_BATCH, MAP_BATCH_ACCELERATOR, P_d)
+
     def solve(uv, w):
         if mesh is not None:
             uv, w = jax.device_put(uv, split), jax.device_put(w, split)
-        return _reconstruct_points(P_d, uv, basis, w, 20.0, 1, True, None)
+        return _reconstruct_points(P_d, uv, basis, w, 20.0, 1, True, None, per_step)
 
     chunks = [i for i in range(-(-n // chunk_size)) if i % count == index]
     todo = [i for i in chunks if i not in done]

@@ -11,6 +11,8 @@ JAX is imported) makes four host devices.
 
 from __future__ import annotations
 
+import functools
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -18,7 +20,14 @@ from jax.sharding import Mesh, NamedSharding
 from jax.sharding import PartitionSpec as Pspec
 from jaxtyping import ArrayLike, Float
 
-from ..solve import Reconstruction, _reconstruct_points, _validate
+from .._batching import points_per_step
+from ..solve import (
+    MAP_BATCH,
+    MAP_BATCH_ACCELERATOR,
+    Reconstruction,
+    _reconstruct_points,
+    _validate,
+)
 
 __all__ = ["point_mesh", "reconstruct_recordings_sharded", "reconstruct_sharded", "shard_leading"]
 
@@ -68,15 +77,17 @@ def reconstruct_recordings_sharded(
     uv_s, _ = shard_leading(uv.astype(dtype), mesh)
     w_s, _ = shard_leading(w, mesh)
     B = jax.device_put(jnp.asarray(basis, dtype), NamedSharding(mesh, Pspec()))
-    res = _recordings(P_s, uv_s, B, w_s, max_gain)
+    per_step = points_per_step(MAP_BATCH, MAP_BATCH_ACCELERATOR, uv_s)
+    res = _recordings(P_s, uv_s, B, w_s, max_gain, per_step)
     return jax.tree_util.tree_map(lambda a: a[:R], res)
 
 
-@jax.jit
-def _recordings(P, uv, basis, w, max_gain):
-    return jax.vmap(lambda p, u, ww: _reconstruct_points(p, u, basis, ww, max_gain, 1, True, None))(
-        P, uv, w
-    )
+@functools.partial(jax.jit, static_argnames="per_step")
+def _recordings(P, uv, basis, w, max_gain, per_step):
+    def one(p, u, ww):
+        return _reconstruct_points(p, u, basis, ww, max_gain, 1, True, None, per_step)
+
+    return jax.vmap(one)(P, uv, w)
 
 
 def reconstruct_sharded(
@@ -113,5 +124,6 @@ def reconstruct_sharded(
     uv_s, w_s = jax.device_put(uv, split), jax.device_put(w, split)
     P_r = jax.device_put(jnp.asarray(P, dtype), same)
     B_r = jax.device_put(jnp.asarray(basis, dtype), same)
-    res = _reconstruct_points(P_r, uv_s, B_r, w_s, max_gain, refine, diagnostics, None)
+    per_step = points_per_step(MAP_BATCH, MAP_BATCH_ACCELERATOR, uv_s)
+    res = _reconstruct_points(P_r, uv_s, B_r, w_s, max_gain, refine, diagnostics, None, per_step)
     return jax.tree_util.tree_map(lambda a: a[:n], res) if pad else res
