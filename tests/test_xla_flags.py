@@ -130,7 +130,7 @@ F, k, n = 30, 5, 16
 P = jnp.tile(jnp.eye(3, 4), (F, 1, 1)).at[:, 0, 3].set(jnp.linspace(-1, 1, F))
 uv, w = jnp.zeros((n, F, 2)), jnp.ones((n, F))
 basis = jaxtraj.dct_basis(jnp.linspace(0, 1, F), k)
-hlo = _reconstruct_points.lower(P, uv, basis, w, jnp.asarray(20.0), 1, True, None)
+hlo = _reconstruct_points.lower(P, uv, basis, w, jnp.asarray(20.0), 1, True, None, 8)
 print(hlo.compile().as_text().count("__ynn_fusion"))
 """
 
