@@ -27,7 +27,6 @@ from __future__ import annotations
 import argparse
 import os
 import sys
-import time
 from pathlib import Path
 
 if __name__ == "__main__":
@@ -139,15 +138,8 @@ def gain_section(n: int, repeats: int, log) -> list[str]:
 def drivers_section(n: int, n_reg: int, repeats: int, log) -> list[str]:
     rows = []
     for name, (count, fn) in driver_cases(n, n_reg).items():
-        t0 = time.perf_counter()
-        jax.block_until_ready(fn())
-        first = time.perf_counter() - t0
-        runs = []
-        for _ in range(repeats):
-            t0 = time.perf_counter()
-            jax.block_until_ready(fn())
-            runs.append(time.perf_counter() - t0)
-        rows.append([name, str(count), f"{first:.1f}", f"{min(runs) / count * 1e3:.3f}"])
+        t = time_call(fn, repeats)
+        rows.append([name, str(count), f"{t.first:.1f}", f"{min(t.runs) / count * 1e3:.3f}"])
         log(" | ".join(rows[-1]))
     header = ["driver", "points", "first call [s]", "warm [ms/point]"]
     return [
@@ -189,17 +181,10 @@ def sweep_section(n: int, n_reg: int, repeats: int, log) -> list[str]:
             for size in sizes:
                 for a in attrs:
                     setattr(module, a + suffix, size)
-                t0 = time.perf_counter()
-                jax.block_until_ready(fn())
-                first = time.perf_counter() - t0
-                runs = []
-                for _ in range(repeats):
-                    t0 = time.perf_counter()
-                    jax.block_until_ready(fn())
-                    runs.append(time.perf_counter() - t0)
+                t = time_call(fn, repeats)
                 label = "all" if size == 0 else str(size)
                 rows.append(
-                    [name, label, str(count), f"{first:.1f}", f"{min(runs) / count * 1e3:.3f}"]
+                    [name, label, str(count), f"{t.first:.1f}", f"{min(t.runs) / count * 1e3:.3f}"]
                 )
                 log(" | ".join(rows[-1]))
         finally:
