@@ -138,6 +138,28 @@ def test_constraint_values_against_direct_computation(scene, rng):
     np.testing.assert_allclose(values["depth_determined"], np.array(kappa) / 0.08 - 1, rtol=1e-9)
 
 
+def test_geometry_on_every_other_grid_point(scene, rng):
+    """With ``geometry_stride=2`` the floor and keep-out constraints use every other grid
+    point (the floor's values are the full grid's there); the joint limits keep the full
+    grid; a stride that does not divide the grid's points per image is refused."""
+    full = JointPathModel.create(scene["times"], scene["q0"], n_control=8, grid_per_image=4)
+    half = JointPathModel.create(
+        scene["times"], scene["q0"], n_control=8, grid_per_image=4, geometry_stride=2
+    )
+    theta = rng.normal(0.0, 0.05, full.shape)
+    args = (scene["cell"], scene["predicted"], scene["samples"])
+    v1 = joint_constraint_values(full, theta, *args)
+    v2 = joint_constraint_values(half, theta, *args)
+    G, n_heights = full.grid.shape[0], v1["floor"].size // full.grid.shape[0]
+    floor1 = np.asarray(v1["floor"]).reshape(G, n_heights)[::2].ravel()
+    np.testing.assert_allclose(v2["floor"], floor1, atol=1e-12)
+    assert v2["keep_out"].size == 2 * ((G - 1) // 2)  # chords between every other point
+    for name in ("joint_velocity", "standoff", "field_of_view"):
+        np.testing.assert_allclose(v2[name], v1[name], atol=1e-12)
+    with pytest.raises(ValueError, match="geometry_stride: expected a divisor of grid_per_"):
+        JointPathModel.create(scene["times"], scene["q0"], grid_per_image=5, geometry_stride=2)
+
+
 def test_design_converges_and_holds_on_a_10x_finer_grid(scene, rng):
     """Maximise eta under every limit: each start converges (violation below 1e-3, KKT
     stationarity below the default tolerance), the constraints hold on a grid 10x finer

@@ -112,6 +112,8 @@ class JointPathModel(eqx.Module):
         basis_images: (F, m - 3) position basis at the images (pinned columns dropped).
         basis_grid: (4, G, m - 3) position, velocity, acceleration, jerk basis on the grid.
         q0: (n,) start configuration [rad].
+        geometry_stride: the floor and keep-out constraints (forward kinematics of every
+            joint frame) use every ``geometry_stride``-th grid point.
     """
 
     times: Float[Array, " F"]
@@ -119,6 +121,7 @@ class JointPathModel(eqx.Module):
     basis_images: Float[Array, "F p"]
     basis_grid: Float[Array, "4 G p"]
     q0: Float[Array, " n"]
+    geometry_stride: int = eqx.field(static=True, default=1)
 
     @classmethod
     def create(
@@ -129,6 +132,7 @@ class JointPathModel(eqx.Module):
         n_control: int = 12,
         degree: int = 5,
         grid_per_image: int = 10,
+        geometry_stride: int = 1,
     ) -> JointPathModel:
         """A model with ``n_control`` control points per joint over ``[times[0], times[-1]]``.
 
@@ -152,6 +156,11 @@ class JointPathModel(eqx.Module):
             raise ValueError(f"n_control: expected >= degree + 2 = {degree + 2}, got {n_control}")
         if grid_per_image < 1:
             raise ValueError(f"grid_per_image: expected >= 1, got {grid_per_image}")
+        if geometry_stride < 1 or grid_per_image % geometry_stride:
+            raise ValueError(
+                f"geometry_stride: expected a divisor of grid_per_image={grid_per_image}, "
+                f"got {geometry_stride}"
+            )
         knots = clamped_knots(t[0], t[-1], n_control, degree)
         grid = np.interp(
             np.linspace(0, t.size - 1, grid_per_image * (t.size - 1) + 1), np.arange(t.size), t
@@ -165,6 +174,7 @@ class JointPathModel(eqx.Module):
             jnp.asarray(b_img, dtype),
             jnp.asarray(b_grid, dtype),
             jnp.asarray(q0, dtype),
+            geometry_stride,
         )
 
     @property
@@ -236,9 +246,10 @@ def joint_constraint_values(
     ):
         values[name] = jnp.square(model.joints(theta, d) / limit) - 1.0
     # geometry on the grid: every joint frame, the flange and the camera
-    frames = matmul_small(cell.T_w_base, jax.vmap(lambda qq: joint_frames(chain, qq))(q))
+    stride = model.geometry_stride
+    frames = matmul_small(cell.T_w_base, jax.vmap(lambda qq: joint_frames(chain, qq))(q[::stride]))
     cam_grid = matmul_small(frames[:, -1], cell.T_f_c)[:, :3, 3]  # frames: (G, n+1, 4, 4)
-    x_grid = jax.vmap(lambda c: jnp.interp(model.grid, model.times, c), 1, 1)(predicted)
+    x_grid = jax.vmap(lambda c: jnp.interp(model.grid[::stride], model.times, c), 1, 1)(predicted)
     heights = jnp.concatenate([frames[:, :, 2, 3], cam_grid[:, 2:3]], axis=1)
     values["floor"] = (cell.floor_z + cell.floor_clearance - heights) / cell.floor_clearance
     dist = jnp.stack(
