@@ -248,7 +248,7 @@ def joint_constraint_values(
     # geometry on the grid: every joint frame, the flange and the camera
     stride = model.geometry_stride
     frames = matmul_small(cell.T_w_base, jax.vmap(lambda qq: joint_frames(chain, qq))(q[::stride]))
-    cam_grid = matmul_small(frames[:, -1], cell.T_f_c)[:, :3, 3]  # frames: (G, n+1, 4, 4)
+    cam_grid = matmul_small(frames[:, -1], cell.T_f_c)[:, :3, 3]  # frames: (G / stride, n+1, 4, 4)
     x_grid = jax.vmap(lambda c: jnp.interp(model.grid[::stride], model.times, c), 1, 1)(predicted)
     heights = jnp.concatenate([frames[:, :, 2, 3], cam_grid[:, 2:3]], axis=1)
     values["floor"] = (cell.floor_z + cell.floor_clearance - heights) / cell.floor_clearance
