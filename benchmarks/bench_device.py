@@ -51,13 +51,12 @@ def kernel_per_point(scene, dtype, repeats: int) -> float:
     """Warm seconds per point of the batched kernel that ``reconstruct_points`` calls
     (``jaxtraj.solve._reconstruct_points``, this platform's group size), without the
     host-side input checks."""
-    from jaxtraj._batching import points_per_step
-    from jaxtraj.solve import MAP_BATCH, MAP_BATCH_ACCELERATOR, _reconstruct_points
+    from jaxtraj.solve import _per_step, _reconstruct_points
 
     P, uv, basis = _inputs(scene, dtype)
     w = jnp.ones(uv.shape[:2], dtype)
     gain = jnp.asarray(20.0, dtype)
-    per_step = points_per_step(MAP_BATCH, MAP_BATCH_ACCELERATOR, uv)
+    per_step = _per_step(uv)
 
     def run():
         return _reconstruct_points(P, uv, basis, w, gain, 1, True, None, per_step)

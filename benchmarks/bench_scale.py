@@ -596,12 +596,10 @@ def vs_kernel(cfg: Config, workdir: Path, chunks: tuple[int, ...], repeats: int,
     includes the first chunk's compilation only on its first call). Medians over repeats.
     """
     from jaxtraj import reconstruct_points
-    from jaxtraj._batching import points_per_step
     from jaxtraj.cli import main as cli_main
     from jaxtraj.scale.chunked import NpyRows
     from jaxtraj.solve import (
-        MAP_BATCH,
-        MAP_BATCH_ACCELERATOR,
+        _per_step,
         _reconstruct_points,  # run_batch's kernel (padded rows allowed)
     )
 
@@ -669,7 +667,7 @@ def vs_kernel(cfg: Config, workdir: Path, chunks: tuple[int, ...], repeats: int,
 
     # Stage times of one serial pass (no overlap), per point, at the largest chunk size.
     c = max(chunks)
-    per_step = points_per_step(MAP_BATCH, MAP_BATCH_ACCELERATOR, P)
+    per_step = _per_step(P)
     tracks = NpyRows(ds / "tracks.npy")
     stages = dict.fromkeys(("read", "mask and pad", "solve", "copy to host", "write", "fsync"), 0.0)
     outs = {name: NpyRows(workdir / f"vk-{c}" / f"{name}.npy", "r+b")

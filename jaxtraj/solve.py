@@ -475,6 +475,12 @@ MAP_BATCH = 8
 MAP_BATCH_ACCELERATOR = 0
 
 
+def _per_step(like) -> int:
+    """The kernel's group size (:data:`MAP_BATCH` or :data:`MAP_BATCH_ACCELERATOR`) for the
+    platform of the array ``like``."""
+    return points_per_step(MAP_BATCH, MAP_BATCH_ACCELERATOR, like)
+
+
 @functools.partial(jax.jit, static_argnames=("refine", "diagnostics", "map_batch"))
 def _reconstruct_points(P, uv, basis, weights, max_gain, refine, diagnostics, penalty, map_batch):
     """The batched kernel; ``penalty`` is None, shared (k,) or one per point (N, k)."""
@@ -519,5 +525,4 @@ def reconstruct_points(
     w = jnp.ones(uv_.shape[:2], P_.dtype) if weights is None else jnp.asarray(weights, P_.dtype)
     pen = None if penalty is None else jnp.asarray(penalty, P_.dtype)
     gain = jnp.asarray(max_gain, P_.dtype)
-    per_step = points_per_step(MAP_BATCH, MAP_BATCH_ACCELERATOR, uv_)
-    return _reconstruct_points(P_, uv_, basis_, w, gain, refine, diagnostics, pen, per_step)
+    return _reconstruct_points(P_, uv_, basis_, w, gain, refine, diagnostics, pen, _per_step(uv_))

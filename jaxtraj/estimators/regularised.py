@@ -29,9 +29,8 @@ from .._batching import map_points, points_per_step
 from .._checks import check_finite, check_shape, check_tracks
 from ..basis import DCTBasis
 from ..solve import (
-    MAP_BATCH,
-    MAP_BATCH_ACCELERATOR,
     Reconstruction,
+    _per_step,
     _reconstruct_points,
     _reprojection_rms,
     reconstruct,
@@ -282,7 +281,7 @@ def reconstruct_regularised_points(
     P = jnp.asarray(P, dtype)
     w = jnp.ones(np.shape(uv)[:2], dtype) if weights is None else jnp.asarray(weights, dtype)
     uv = jnp.where(w[..., None] > 0, jnp.asarray(uv, dtype), 0.0)
-    per_step = points_per_step(MAP_BATCH, MAP_BATCH_ACCELERATOR, uv)
+    per_step = _per_step(uv)
     if lam is not None:
         pen = jnp.asarray(lam, dtype) * rough
         gain = jnp.asarray(20.0, dtype)

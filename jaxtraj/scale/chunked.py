@@ -40,9 +40,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .._batching import points_per_step
 from ..basis import dct_basis
-from ..solve import MAP_BATCH, MAP_BATCH_ACCELERATOR, _reconstruct_points
+from ..solve import _per_step, _reconstruct_points
 
 __all__ = ["BatchSummary", "NpyRows", "run_batch", "write_dataset"]
 
@@ -257,7 +256,7 @@ def run_batch(
         split, same = NamedSharding(mesh, Pspec("points")), NamedSharding(mesh, Pspec())
         P_d, basis = jax.device_put(P_d, same), jax.device_put(basis, same)
 
-    per_step = points_per_step(MAP_BATCH, MAP_BATCH_ACCELERATOR, P_d)
+    per_step = _per_step(P_d)
 
     def solve(uv, w):
         if mesh is not None:

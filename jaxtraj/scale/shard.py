@@ -20,14 +20,7 @@ from jax.sharding import Mesh, NamedSharding
 from jax.sharding import PartitionSpec as Pspec
 from jaxtyping import ArrayLike, Float
 
-from .._batching import points_per_step
-from ..solve import (
-    MAP_BATCH,
-    MAP_BATCH_ACCELERATOR,
-    Reconstruction,
-    _reconstruct_points,
-    _validate,
-)
+from ..solve import Reconstruction, _per_step, _reconstruct_points, _validate
 
 __all__ = ["point_mesh", "reconstruct_recordings_sharded", "reconstruct_sharded", "shard_leading"]
 
@@ -77,8 +70,7 @@ def reconstruct_recordings_sharded(
     uv_s, _ = shard_leading(uv.astype(dtype), mesh)
     w_s, _ = shard_leading(w, mesh)
     B = jax.device_put(jnp.asarray(basis, dtype), NamedSharding(mesh, Pspec()))
-    per_step = points_per_step(MAP_BATCH, MAP_BATCH_ACCELERATOR, uv_s)
-    res = _recordings(P_s, uv_s, B, w_s, max_gain, per_step)
+    res = _recordings(P_s, uv_s, B, w_s, max_gain, _per_step(uv_s))
     return jax.tree_util.tree_map(lambda a: a[:R], res)
 
 
@@ -124,6 +116,6 @@ def reconstruct_sharded(
     uv_s, w_s = jax.device_put(uv, split), jax.device_put(w, split)
     P_r = jax.device_put(jnp.asarray(P, dtype), same)
     B_r = jax.device_put(jnp.asarray(basis, dtype), same)
-    per_step = points_per_step(MAP_BATCH, MAP_BATCH_ACCELERATOR, uv_s)
+    per_step = _per_step(uv_s)
     res = _reconstruct_points(P_r, uv_s, B_r, w_s, max_gain, refine, diagnostics, None, per_step)
     return jax.tree_util.tree_map(lambda a: a[:n], res) if pad else res
