@@ -64,28 +64,20 @@ def _track_summary(uv, weights):
     return w_ok, n_bad, jnp.min(jnp.sum(w > 0, axis=-1))
 
 
-def fewest_observed(uv, weights) -> int:
-    """The smallest number of frames with non-zero weight over the tracks (concrete input)."""
-    if weights is None:
-        return int(np.shape(uv)[-2])
-    if on_accelerator(weights):
-        return int(_track_summary(jnp.asarray(uv), weights)[2])
-    return int(np.min(np.sum(np.asarray(weights) > 0, axis=-1)))
-
-
-def check_tracks(uv, weights) -> None:
+def check_tracks(uv, weights) -> int | None:
     """Value checks of pixel tracks (..., F, 2) and weights (..., F) on concrete arrays.
 
     Weights must be finite and >= 0 (0 marks a missing detection); pixels with non-zero
-    weight must be finite. Under ``jit`` nothing is checked here: solvers report such
-    data through their status instead.
+    weight must be finite. Under ``jit`` nothing is checked here (returns None): solvers
+    report such data through their status instead. Returns the smallest number of frames
+    with non-zero weight over the tracks (for the solvers' count checks).
     """
     if not is_concrete(uv, weights):
-        return
+        return None
     if on_accelerator(uv, weights):
-        w_ok, n_bad, _ = jax.device_get(_track_summary(jnp.asarray(uv), weights))
+        w_ok, n_bad, n_obs = jax.device_get(_track_summary(jnp.asarray(uv), weights))
         if w_ok and n_bad == 0:
-            return  # else: the host copy below words the message
+            return int(n_obs)  # else: the host copy below words the message
     w = np.ones(np.shape(uv)[:-1]) if weights is None else np.asarray(weights)
     if not np.all(np.isfinite(w)) or np.any(w < 0):
         raise ValueError("weights: must be finite and >= 0 (0 marks a missing detection)")
@@ -96,3 +88,4 @@ def check_tracks(uv, weights) -> None:
             f"uv: {int(bad.sum())} non-finite pixel(s) with non-zero weight, first at index "
             f"{where} (track, frame). Give a missing detection weight 0."
         )
+    return int(np.min(np.sum(w > 0, axis=-1)))

@@ -36,7 +36,7 @@ import numpy as np
 from jaxtyping import Array, ArrayLike, Float, Int
 
 from ._batching import map_points, points_per_step
-from ._checks import check_finite, check_shape, check_tracks, fewest_observed, is_concrete
+from ._checks import check_finite, check_shape, check_tracks, is_concrete
 from ._linalg import cholesky_small
 from ._spd import inverse_cholesky, matvec, top_eigenvalue, vecmat
 
@@ -209,13 +209,10 @@ def _validate(P, uv, basis, weights, batch: tuple = (), count_check: bool = True
     if weights is not None:
         check_shape("weights", weights, (*batch, F), "one non-negative weight per pixel")
     check_finite("P", P, hint="Projection matrices must be finite.")
-    check_tracks(uv, weights)
-    if not is_concrete(uv, weights):
-        return
-    if not count_check:
+    n_obs = check_tracks(uv, weights)  # None under tracing
+    if n_obs is None or not count_check:
         return
     k = jnp.shape(basis)[1]
-    n_obs = fewest_observed(uv, weights)
     if 2 * n_obs < 3 * k:
         raise ValueError(
             f"basis: k={k} is too large for {n_obs} observed frame(s); the system "

@@ -73,8 +73,8 @@ def test_track_checks_on_both_paths(rng, monkeypatch, accelerator):
         assert _checks.on_accelerator(jnp.asarray(uv))
     uv_d, w_d = jnp.asarray(uv), jnp.asarray(w)
     jt.reconstruct_points(P, uv_d, basis, w_d)  # valid: no error
-    assert _checks.fewest_observed(uv_d, w_d) == 32  # track 1: 8 of 40 frames weigh 0
-    assert _checks.fewest_observed(uv_d, None) == 40
+    assert _checks.check_tracks(uv_d, w_d) == 32  # fewest observed: track 1, 8 of 40 weigh 0
+    assert _checks.check_tracks(uv_d, None) == 40
     bad = uv.copy()
     bad[2, 7] = np.nan
     with pytest.raises(ValueError, match=r"uv: 1 non-finite pixel\(s\) .* index \(2, 7\)"):
