@@ -597,11 +597,8 @@ def vs_kernel(cfg: Config, workdir: Path, chunks: tuple[int, ...], repeats: int,
     """
     from jaxtraj import reconstruct_points
     from jaxtraj.cli import main as cli_main
-    from jaxtraj.scale.chunked import NpyRows
-    from jaxtraj.solve import (
-        _per_step,
-        _reconstruct_points,  # run_batch's kernel (padded rows allowed)
-    )
+    from jaxtraj.scale.chunked import NpyRows, _solve_chunk  # run_batch's masking and kernel
+    from jaxtraj.solve import _per_step
 
     ds = workdir / "ds-vs-kernel"
     log(f"vs-kernel: writing dataset N = {cfg.n}, F = {cfg.F}")
@@ -669,7 +666,7 @@ def vs_kernel(cfg: Config, workdir: Path, chunks: tuple[int, ...], repeats: int,
     c = max(chunks)
     per_step = _per_step(P)
     tracks = NpyRows(ds / "tracks.npy")
-    stages = dict.fromkeys(("read", "mask and pad", "solve", "copy to host", "write", "fsync"), 0.0)
+    stages = dict.fromkeys(("read", "pad", "mask and solve", "copy to host", "write", "fsync"), 0.0)
     outs = {name: NpyRows(workdir / f"vk-{c}" / f"{name}.npy", "r+b")
             for name in ("points", "coeffs", "rms_px", "gain", "status")}  # fmt: skip
     try:
@@ -678,15 +675,12 @@ def vs_kernel(cfg: Config, workdir: Path, chunks: tuple[int, ...], repeats: int,
             t = [time.perf_counter()]
             chunk = tracks.read(a, b)
             t.append(time.perf_counter())
-            ok = np.all(np.isfinite(chunk), axis=-1)
-            chunk[~ok] = 0.0
+            ok = np.ones((b - a, cfg.F), chunk.dtype)  # the dataset has no weights file
             if b - a < c:
-                chunk = np.concatenate([chunk, np.zeros((c - (b - a), cfg.F, 2))])
-                ok = np.concatenate([ok, np.zeros((c - (b - a), cfg.F), bool)])
+                chunk = np.concatenate([chunk, np.zeros((c - (b - a), cfg.F, 2), chunk.dtype)])
+                ok = np.concatenate([ok, np.zeros((c - (b - a), cfg.F), ok.dtype)])
             t.append(time.perf_counter())
-            res = block(
-                _reconstruct_points(P, chunk, basis, ok * 1.0, 20.0, 1, True, None, per_step)
-            )
+            res = block(_solve_chunk(P, basis, chunk, ok, jnp.dtype(jnp.float64), per_step))
             t.append(time.perf_counter())
             res = jax.device_get(res)
             t.append(time.perf_counter())
