@@ -45,8 +45,11 @@ def points_per_step(cpu: int, accelerator: int, like=None) -> int:
 
 
 def map_points(fn: Callable, xs, per_step: int):
-    """``fn`` over the leading axis of ``xs``: ``lax.map`` in groups of ``per_step`` points,
-    or one ``vmap`` over all of them when ``per_step`` is 0."""
+    """``fn`` over the leading axis of ``xs``: ``lax.map`` in groups of ``per_step`` points
+    (one point per step, unbatched, when it is 1), or one ``vmap`` over all of them when
+    ``per_step`` is 0."""
     if per_step <= 0:
         return jax.vmap(fn)(xs)
+    if per_step == 1:  # one point per step, not a vmap of one (no batched LAPACK call)
+        return jax.lax.map(fn, xs)
     return jax.lax.map(fn, xs, batch_size=per_step)

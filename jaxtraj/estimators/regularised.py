@@ -13,6 +13,27 @@ chosen by K-fold cross-validation on held-out reprojection error, batched over a
 weighted by the conditioning gain beyond a healthy value as in
 :func:`jaxtraj.estimators.select_k_cv` (a weak penalty on a fast, smooth camera path
 reprojects well and is still far off along the rays).
+
+The batched driver can instead choose ``lam`` by generalised cross-validation
+(``criterion="gcv"``), from one simultaneous diagonalisation per track. With the normal
+matrix ``A`` (equilibrated, ``A = L L^T``) and the diagonal penalty ``R``, let
+``L^-1 R L^-T = U diag(s) U^T``; then ``A + lam R = L U (I + lam diag(s)) U^T L^T`` for
+every ``lam`` at once, so with ``c = U^T L^-1 b`` and ``f_i = 1 / (1 + lam s_i)``:
+
+* the coefficients are ``L^-T U (f * c)``;
+* the residual sum of squares is ``RSS(0) + sum_i (c_i (1 - f_i))^2``;
+* the effective number of parameters (the hat matrix's trace) is ``sum_i f_i``;
+* ``GCV = n RSS / (n - sum_i f_i)^2`` over the ``n`` ray-constraint rows, an estimate of
+  the leave-one-out prediction error that needs no refit;
+* the conditioning gain's bound (that of :func:`jaxtraj.reconstruct`) is the top
+  eigenvalue of ``diag(f) K^T K diag(f)``, ``K`` fixed per track.
+
+One symmetric eigendecomposition of ``3k x 3k`` replaces the ``folds x G`` factorisations
+of the K-fold choice (a LAPACK call per track, in a loop over tracks, never batched on a
+CPU). The criterion is the same gain-weighted rule with the GCV's RMS in place of the
+held-out reprojection RMS; GCV measures the residual of the ray constraints (pixels
+times depth), not pixels. Like the K-fold choice it is blind along the rays, which the
+gain weighting and :func:`flag_undetermined_depth` answer.
 """
 
 from __future__ import annotations
@@ -23,13 +44,19 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jax.scipy.linalg import solve_triangular
 from jaxtyping import Array, ArrayLike, Float, Int
 
 from .._batching import map_points, points_per_step
 from .._checks import check_finite, check_shape, check_tracks
+from .._spd import top_eigenvalue
 from ..basis import DCTBasis
 from ..solve import (
     Reconstruction,
+    Status,
+    _assemble,
+    _frame_blocks,
+    _frame_spread,
     _per_step,
     _reconstruct_points,
     _reprojection_rms,
@@ -65,7 +92,9 @@ class PenaltyChoice(eqx.Module):
     held-out reprojection RMS [px], the conditioning gain on all frames and the
     minimised criterion at each grid value. From the batched driver with a shared weight,
     ``tracks`` holds the indices of the tracks that were cross-validated (None
-    otherwise)."""
+    otherwise). With ``criterion="gcv"`` ``cv_rms_px`` holds ``sqrt(GCV)``, the
+    generalised cross-validation RMS of the ray-constraint residual (pixels times depth
+    in the cameras' scale, see the module notes), not pixels."""
 
     lam: Float[Array, ""]
     grid: Float[Array, " G"]
@@ -177,6 +206,8 @@ def reconstruct_regularised(
 #: 256 tracks at k = 60), so the accelerator's groups are bounded too
 CV_BATCH = 4
 CV_BATCH_ACCELERATOR = 64
+#: how the batched driver chooses the penalty weight (see reconstruct_regularised_points)
+CRITERIA = ("kfold", "gcv")
 
 
 @functools.partial(
@@ -195,21 +226,103 @@ def _regularised_points(
     )
     if cv_tracks is None:
         lam = choice.lam
-    else:  # one weight for all points: the smallest mean criterion
-        crit = jnp.mean(jnp.where(jnp.isfinite(choice.criterion), choice.criterion, 1e300), 0)
-        best = grid[jnp.argmin(crit)]
-        lam = jnp.broadcast_to(best, uv.shape[:1])
-        choice = PenaltyChoice(
-            lam=jnp.broadcast_to(best, choice.lam.shape),
-            grid=choice.grid,
-            cv_rms_px=choice.cv_rms_px,
-            gain=choice.gain,
-            criterion=choice.criterion,
-            tracks=jnp.asarray(cv_tracks, jnp.int32),
-        )
+    else:
+        choice = _shared(choice, grid, cv_tracks)
+        lam = jnp.broadcast_to(choice.lam[0], uv.shape[:1])
     pen = lam[:, None] * rough[None, :]
     max_gain = jnp.asarray(20.0, P.dtype)
     return _reconstruct_points(P, uv, Phi, w, max_gain, 1, True, pen, per_step), choice
+
+
+def _shared(choice: PenaltyChoice, grid, cv_tracks) -> PenaltyChoice:
+    """One weight for all points: the grid value with the smallest criterion averaged over
+    the cross-validated tracks ``cv_tracks`` (their per-track records are kept)."""
+    crit = jnp.mean(jnp.where(jnp.isfinite(choice.criterion), choice.criterion, 1e300), 0)
+    best = grid[jnp.argmin(crit)]
+    return PenaltyChoice(
+        lam=jnp.broadcast_to(best, choice.lam.shape),
+        grid=choice.grid,
+        cv_rms_px=choice.cv_rms_px,
+        gain=choice.gain,
+        criterion=choice.criterion,
+        tracks=jnp.asarray(cv_tracks, jnp.int32),
+    )
+
+
+#: tracks per step of the GCV loop: one on a CPU (each step's eigendecomposition is then
+#: one unbatched LAPACK call), 64 on an accelerator (each track holds a few 3k x 3k
+#: matrices, so all at once would not fit for large N)
+GCV_BATCH = 1
+GCV_BATCH_ACCELERATOR = 64
+
+
+def _gcv_track(P, uv, Phi, Lg, w, rough, grid, healthy_gain, max_gain):
+    """Generalised cross-validation of one track over ``grid`` and its fit at the chosen
+    weight (module notes): ``(Reconstruction, PenaltyChoice)``."""
+    dtype = P.dtype
+    k = Phi.shape[1]
+    n3 = 3 * k
+    observed = w > 0
+    A, b = _assemble(P, uv, Phi, w, None)
+    _, _, Q, q = _frame_blocks(P, uv, w)
+    rows = 2 * jnp.sum(observed)
+    d = jax.lax.rsqrt(jnp.maximum(jnp.diag(A), jnp.finfo(dtype).tiny))
+    As = A * d[:, None] * d[None, :] + 16 * jnp.finfo(dtype).eps * jnp.eye(n3, dtype=dtype)
+    L = jnp.linalg.cholesky(As)
+    Z = solve_triangular(L, jnp.diag(jnp.sqrt(jnp.repeat(rough, 3)) * d), lower=True)
+    s, U = jnp.linalg.eigh(Z @ Z.T)
+    s = jnp.maximum(s, 0.0)
+    c = U.T @ solve_triangular(L, d * b, lower=True)
+    rss0 = jnp.maximum(jnp.sum(w[:, None] * q * q) - jnp.sum(c * c), 0.0)
+    G = d[:, None] * solve_triangular(L.T, U, lower=False)  # N^-1 = G diag(f) G^T
+    K = jnp.einsum("ji,jan->ian", Lg, G.reshape(k, 3, n3)).reshape(n3, n3)
+    KtK = K.T @ K
+    spread_hi = _frame_spread(Q, w)[1]
+    v0 = 1.0 + 0.1 * jnp.modf(jnp.arange(n3) * 0.6180339887498949)[0].astype(dtype)
+
+    def at(lam):
+        f = 1.0 / (1.0 + lam * s)
+        rss = rss0 + jnp.sum((c * (1.0 - f)) ** 2)
+        dof = rows - jnp.sum(f)
+        gcv = jnp.where(dof > 0, rows * rss / jnp.where(dof > 0, dof, 1.0) ** 2, jnp.inf)
+        top = top_eigenvalue(lambda v: f * (KtK @ (f * v)), v0, 8)
+        return jnp.sqrt(gcv), jnp.sqrt(jnp.maximum(top, 0.0) * spread_hi)
+
+    score, gain = jax.lax.map(at, grid)
+    crit = score if healthy_gain is None else score * jnp.maximum(1.0, gain / healthy_gain)
+    crit = jnp.where(jnp.isfinite(crit), crit, jnp.inf)
+    i = jnp.argmin(crit)
+    beta = G @ (c / (1.0 + grid[i] * s))
+    coeffs = beta.reshape(k, 3)
+    points = Phi @ coeffs
+    finite = jnp.all(jnp.isfinite(uv), axis=1) | ~observed
+    degenerate = (gain[i] > max_gain) | ~jnp.isfinite(gain[i]) | ~jnp.all(jnp.isfinite(beta))
+    status = jnp.where(
+        ~jnp.all(finite) | ~jnp.all(jnp.isfinite(P)),
+        Status.NONFINITE,
+        jnp.where(degenerate, Status.DEGENERATE, Status.OK),
+    ).astype(jnp.int32)
+    res = Reconstruction(
+        coeffs=coeffs,
+        points=points,
+        rms_px=_reprojection_rms(P, uv, points, observed),
+        gain=gain[i],
+        num_observed=jnp.sum(observed).astype(jnp.int32),
+        status=status,
+    )
+    choice = PenaltyChoice(lam=grid[i], grid=grid, cv_rms_px=score, gain=gain, criterion=crit)
+    return res, choice
+
+
+@functools.partial(jax.jit, static_argnames=("healthy_gain", "per_step"))
+def _regularised_points_gcv(P, uv, Phi, w, rough, grid, healthy_gain, per_step):
+    Lg = jnp.linalg.cholesky(Phi.T @ Phi)  # Theta^T Theta = Lg Lg^T, shared by the tracks
+    max_gain = jnp.asarray(20.0, P.dtype)
+    return map_points(
+        lambda a: _gcv_track(P, a[0], Phi, Lg, a[1], rough, grid, healthy_gain, max_gain),
+        (uv, w),
+        per_step,
+    )
 
 
 def _spread_tracks(n: int, m: int | None) -> tuple[int, ...]:
@@ -234,6 +347,7 @@ def reconstruct_regularised_points(
     folds: int = 5,
     rule: str = "gain_weighted",
     healthy_gain: float = 20.0,
+    criterion: str = "kfold",
 ) -> tuple[Reconstruction, DCTBasis, PenaltyChoice | None]:
     """:func:`reconstruct_regularised` for N points seen by the same cameras, in one
     compiled program per shape.
@@ -247,12 +361,19 @@ def reconstruct_regularised_points(
     ``shared`` every ``lam`` is the shared one and ``tracks`` says which tracks were
     cross-validated).
 
-    Cost: per cross-validated track ``folds * G`` penalised solves of the ``3k x 3k``
-    system and ``G`` gain bounds (G = 15 grid values by default), each about ``(3k)^3``
-    multiply-adds for its factorisation; this, not the assembly, dominates for the
-    default k = min(F, 60): about 65-140 ms per track at F = 150 on 2 cores (AMD EPYC,
-    Intel Xeon). A shared weight pays it for ``cv_points`` tracks only, then one solve
-    per point (README: per-point cost of the batched drivers). A shared weight suits
+    ``criterion``: ``"kfold"`` (default) cross-validates with ``folds`` interleaved folds
+    of held-out frames; ``"gcv"`` uses generalised cross-validation from one
+    eigendecomposition per track (module notes; ``folds`` is then unused), and with a
+    weight per point returns the fit at the chosen weight from the same decomposition.
+
+    Cost: per cross-validated track, K-fold: ``folds * G`` penalised solves of the
+    ``3k x 3k`` system and ``G`` gain bounds (G = 15 grid values by default), each about
+    ``(3k)^3`` multiply-adds for its factorisation; this, not the assembly, dominates for
+    the default k = min(F, 60): about 65-140 ms per track at F = 150 on 2 cores (AMD EPYC,
+    Intel Xeon). GCV: one Cholesky factorisation and one symmetric eigendecomposition of
+    ``3k x 3k`` and a few matrix products. A shared weight pays the choice for
+    ``cv_points`` tracks only, then one solve per point (README: per-point cost of the
+    batched drivers). A shared weight suits
     points of one rigid workpiece (the same motion, the same cameras and noise); points
     that move differently want their own.
     """
@@ -273,6 +394,8 @@ def reconstruct_regularised_points(
     ):
         raise ValueError(f"cv_points: expected a positive int or None, got {cv_points!r}")
     check_rule(rule, healthy_gain)
+    if criterion not in CRITERIA:
+        raise ValueError(f"criterion: expected one of {CRITERIA}, got {criterion!r}")
     k = min(F, 60) if k is None else k
     dtype = jnp.result_type(jnp.asarray(P).dtype, jnp.float32)
     basis = DCTBasis.from_times(jnp.asarray(times, dtype), k)
@@ -292,6 +415,19 @@ def reconstruct_regularised_points(
     held = jnp.asarray(_fold_masks(F, folds))
     healthy = float(healthy_gain) if rule == "gain_weighted" else None
     tracks = _spread_tracks(np.shape(uv)[0], cv_points) if shared else None
+    if criterion == "gcv":
+        gcv_per_step = points_per_step(GCV_BATCH, GCV_BATCH_ACCELERATOR, uv)
+        if tracks is None:
+            res, choice = _regularised_points_gcv(P, uv, Phi, w, rough, grid, healthy, gcv_per_step)
+            return flag_undetermined_depth(res, P, times, order), basis, choice
+        sel = np.asarray(tracks)
+        _, choice = _regularised_points_gcv(
+            P, uv[sel], Phi, w[sel], rough, grid, healthy, gcv_per_step
+        )
+        choice = _shared(choice, grid, tracks)
+        pen = choice.lam[0] * rough
+        res = _reconstruct_points(P, uv, Phi, w, jnp.asarray(20.0, dtype), 1, True, pen, per_step)
+        return flag_undetermined_depth(res, P, times, order), basis, choice
     cv_per_step = points_per_step(CV_BATCH, CV_BATCH_ACCELERATOR, uv)
     res, choice = _regularised_points(
         P, uv, Phi, w, rough, grid, held, healthy, tracks, cv_per_step, per_step
