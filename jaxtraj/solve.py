@@ -346,18 +346,25 @@ def _finish(P, uv, basis, weights, N, b, max_gain, penalty, refine, diagnostics)
         degenerate = (jnp.max(diag) / jnp.min(diag)) ** 2 > 1.0 / jnp.sqrt(eps)
     rms = _reprojection_rms(P, uv, points, observed)
     n_obs = jnp.sum(observed).astype(jnp.int32)
-    status = jnp.where(
+    status = _status(finite, P, n_obs, k, penalty is not None, degenerate)
+    return Reconstruction(
+        coeffs=coeffs, points=points, rms_px=rms, gain=gain, num_observed=n_obs, status=status
+    )
+
+
+def _status(finite, P, n_obs, k, penalised, degenerate):
+    """Status code (int32) of one solve: NONFINITE if a pixel (``finite``: per frame,
+    observed frames only) or a camera is not finite, UNDERDETERMINED if an unpenalised fit
+    has fewer than ``3 k / 2`` observed frames, else DEGENERATE or OK."""
+    return jnp.where(
         ~jnp.all(finite) | ~jnp.all(jnp.isfinite(P)),
         Status.NONFINITE,
         jnp.where(
-            (2 * n_obs < 3 * k) & (penalty is None),
+            (2 * n_obs < 3 * k) & (not penalised),
             Status.UNDERDETERMINED,
             jnp.where(degenerate, Status.DEGENERATE, Status.OK),
         ),
     ).astype(jnp.int32)
-    return Reconstruction(
-        coeffs=coeffs, points=points, rms_px=rms, gain=gain, num_observed=n_obs, status=status
-    )
 
 
 def _square_blocks(QtQ):

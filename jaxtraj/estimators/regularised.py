@@ -53,13 +53,13 @@ from .._spd import top_eigenvalue
 from ..basis import DCTBasis
 from ..solve import (
     Reconstruction,
-    Status,
     _assemble,
     _frame_blocks,
     _frame_spread,
     _per_step,
     _reconstruct_points,
     _reprojection_rms,
+    _status,
     reconstruct,
 )
 from ._depth import flag_undetermined_depth
@@ -206,6 +206,8 @@ def reconstruct_regularised(
 #: 256 tracks at k = 60), so the accelerator's groups are bounded too
 CV_BATCH = 4
 CV_BATCH_ACCELERATOR = 64
+#: the conditioning gain above which the drivers' fits are DEGENERATE (the solver's default)
+MAX_GAIN = 20.0
 #: how the batched driver chooses the penalty weight (see reconstruct_regularised_points)
 CRITERIA = ("kfold", "gcv")
 
@@ -230,7 +232,7 @@ def _regularised_points(
         choice = _shared(choice, grid, cv_tracks)
         lam = jnp.broadcast_to(choice.lam[0], uv.shape[:1])
     pen = lam[:, None] * rough[None, :]
-    max_gain = jnp.asarray(20.0, P.dtype)
+    max_gain = jnp.asarray(MAX_GAIN, P.dtype)
     return _reconstruct_points(P, uv, Phi, w, max_gain, 1, True, pen, per_step), choice
 
 
@@ -297,18 +299,14 @@ def _gcv_track(P, uv, Phi, Lg, w, rough, grid, healthy_gain, max_gain):
     points = Phi @ coeffs
     finite = jnp.all(jnp.isfinite(uv), axis=1) | ~observed
     degenerate = (gain[i] > max_gain) | ~jnp.isfinite(gain[i]) | ~jnp.all(jnp.isfinite(beta))
-    status = jnp.where(
-        ~jnp.all(finite) | ~jnp.all(jnp.isfinite(P)),
-        Status.NONFINITE,
-        jnp.where(degenerate, Status.DEGENERATE, Status.OK),
-    ).astype(jnp.int32)
+    n_obs = jnp.sum(observed).astype(jnp.int32)
     res = Reconstruction(
         coeffs=coeffs,
         points=points,
         rms_px=_reprojection_rms(P, uv, points, observed),
         gain=gain[i],
-        num_observed=jnp.sum(observed).astype(jnp.int32),
-        status=status,
+        num_observed=n_obs,
+        status=_status(finite, P, n_obs, k, True, degenerate),
     )
     choice = PenaltyChoice(lam=grid[i], grid=grid, cv_rms_px=score, gain=gain, criterion=crit)
     return res, choice
@@ -317,7 +315,7 @@ def _gcv_track(P, uv, Phi, Lg, w, rough, grid, healthy_gain, max_gain):
 @functools.partial(jax.jit, static_argnames=("healthy_gain", "per_step"))
 def _regularised_points_gcv(P, uv, Phi, w, rough, grid, healthy_gain, per_step):
     Lg = jnp.linalg.cholesky(Phi.T @ Phi)  # Theta^T Theta = Lg Lg^T, shared by the tracks
-    max_gain = jnp.asarray(20.0, P.dtype)
+    max_gain = jnp.asarray(MAX_GAIN, P.dtype)
     return map_points(
         lambda a: _gcv_track(P, a[0], Phi, Lg, a[1], rough, grid, healthy_gain, max_gain),
         (uv, w),
@@ -373,9 +371,8 @@ def reconstruct_regularised_points(
     Intel Xeon). GCV: one Cholesky factorisation and one symmetric eigendecomposition of
     ``3k x 3k`` and a few matrix products. A shared weight pays the choice for
     ``cv_points`` tracks only, then one solve per point (README: per-point cost of the
-    batched drivers). A shared weight suits
-    points of one rigid workpiece (the same motion, the same cameras and noise); points
-    that move differently want their own.
+    batched drivers). A shared weight suits points of one rigid workpiece (the same
+    motion, the same cameras and noise); points that move differently want their own.
     """
     if np.ndim(uv) != 3:
         raise ValueError(f"uv: expected shape (N, F, 2), got {np.shape(uv)}")
@@ -405,11 +402,15 @@ def reconstruct_regularised_points(
     w = jnp.ones(np.shape(uv)[:2], dtype) if weights is None else jnp.asarray(weights, dtype)
     uv = jnp.where(w[..., None] > 0, jnp.asarray(uv, dtype), 0.0)
     per_step = _per_step(uv)
+
+    def solved(pen, choice):  # every point with the penalty ``pen`` (k,), depth flagged
+        res = _reconstruct_points(
+            P, uv, Phi, w, jnp.asarray(MAX_GAIN, dtype), 1, True, pen, per_step
+        )
+        return flag_undetermined_depth(res, P, times, order), basis, choice
+
     if lam is not None:
-        pen = jnp.asarray(lam, dtype) * rough
-        gain = jnp.asarray(20.0, dtype)
-        res = _reconstruct_points(P, uv, Phi, w, gain, 1, True, pen, per_step)
-        return flag_undetermined_depth(res, P, times, order), basis, None
+        return solved(jnp.asarray(lam, dtype) * rough, None)
     grid = jnp.logspace(-4, 10, 15, dtype=dtype) if grid is None else jnp.asarray(grid, dtype)
     check_shape("grid", grid, (None,), "(G,) penalty weights")
     held = jnp.asarray(_fold_masks(F, folds))
@@ -425,9 +426,7 @@ def reconstruct_regularised_points(
             P, uv[sel], Phi, w[sel], rough, grid, healthy, gcv_per_step
         )
         choice = _shared(choice, grid, tracks)
-        pen = choice.lam[0] * rough
-        res = _reconstruct_points(P, uv, Phi, w, jnp.asarray(20.0, dtype), 1, True, pen, per_step)
-        return flag_undetermined_depth(res, P, times, order), basis, choice
+        return solved(choice.lam[0] * rough, choice)
     cv_per_step = points_per_step(CV_BATCH, CV_BATCH_ACCELERATOR, uv)
     res, choice = _regularised_points(
         P, uv, Phi, w, rough, grid, held, healthy, tracks, cv_per_step, per_step
