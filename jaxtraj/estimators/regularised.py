@@ -168,6 +168,21 @@ def _cv(P, uv, Phi, w, rough, grid, held, healthy_gain):
     )
 
 
+#: reprojection RMS [px] above which a regularised fit is DEGENERATE (see
+#: :func:`reconstruct_regularised`). On the tests' robot scenes (F = 150, k = 60) the fits
+#: with status OK reproject at up to 0.85 px RMS with 0.3 px noise and 1.6 px with 1 px
+#: noise; fits collapsed towards a slow camera at 8-5986 px.
+MAX_RMS_PX = 5.0
+
+
+def _check_max_rms(max_rms_px) -> None:
+    if isinstance(max_rms_px, bool) or not (float(max_rms_px) > 0):
+        raise ValueError(
+            f"max_rms_px: expected a positive number of pixels (inf turns the test off), "
+            f"got {max_rms_px!r}"
+        )
+
+
 def reconstruct_regularised(
     P: Float[ArrayLike, "F 3 4"],
     uv: Float[ArrayLike, "F 2"],
@@ -179,14 +194,22 @@ def reconstruct_regularised(
     lam: float | None = None,
     folds: int = 5,
     rule: str = "gain_weighted",
+    max_rms_px: float = MAX_RMS_PX,
 ) -> tuple[Reconstruction, DCTBasis, PenaltyChoice | None]:
     """Regularised DCT reconstruction: a generous k (default ``min(F, 60)``) with a
     roughness penalty whose weight is chosen by cross-validation (``rule``: see
     :func:`select_penalty_cv`) unless ``lam`` is given.
 
+    The status is ``DEGENERATE`` where the gain exceeds 20, where the depth
+    uncertainty ``kappa`` of the penalty's order exceeds 0.08, or where the fit's
+    reprojection RMS exceeds ``max_rms_px`` (:data:`MAX_RMS_PX` by default; ``inf``
+    turns the test off): a fit that misses its own pixels by that much has collapsed towards
+    the cameras (see :func:`flag_undetermined_depth`), not measured the point.
+
     Returns the :class:`~jaxtraj.Reconstruction`, the basis (evaluate it at other times
     for velocity or prediction) and the cross-validation record (None if ``lam`` given).
     """
+    _check_max_rms(max_rms_px)
     F = np.shape(P)[0]
     k = min(F, 60) if k is None else k
     basis = DCTBasis.from_times(times, k)
@@ -198,7 +221,7 @@ def reconstruct_regularised(
         lam = choice.lam
     pen = lam * roughness_penalty(basis, order)
     res = reconstruct(P, uv, basis(jnp.asarray(times)), weights, penalty=pen)
-    return flag_undetermined_depth(res, P, times, order), basis, choice
+    return flag_undetermined_depth(res, P, times, order, max_rms_px=max_rms_px), basis, choice
 
 
 #: tracks per step of the cross-validation loop on a CPU and on an accelerator: under one
@@ -346,6 +369,7 @@ def reconstruct_regularised_points(
     rule: str = "gain_weighted",
     healthy_gain: float = 20.0,
     criterion: str = "kfold",
+    max_rms_px: float = MAX_RMS_PX,
 ) -> tuple[Reconstruction, DCTBasis, PenaltyChoice | None]:
     """:func:`reconstruct_regularised` for N points seen by the same cameras, in one
     compiled program per shape.
@@ -363,6 +387,7 @@ def reconstruct_regularised_points(
     of held-out frames; ``"gcv"`` uses generalised cross-validation from one
     eigendecomposition per track (module notes; ``folds`` is then unused), and with a
     weight per point returns the fit at the chosen weight from the same decomposition.
+    ``max_rms_px``: as for :func:`reconstruct_regularised` (the statuses are the same).
 
     Cost: per cross-validated track, K-fold: ``folds * G`` penalised solves of the
     ``3k x 3k`` system and ``G`` gain bounds (G = 15 grid values by default), each about
@@ -393,6 +418,7 @@ def reconstruct_regularised_points(
     check_rule(rule, healthy_gain)
     if criterion not in CRITERIA:
         raise ValueError(f"criterion: expected one of {CRITERIA}, got {criterion!r}")
+    _check_max_rms(max_rms_px)
     k = min(F, 60) if k is None else k
     dtype = jnp.result_type(jnp.asarray(P).dtype, jnp.float32)
     basis = DCTBasis.from_times(jnp.asarray(times, dtype), k)
@@ -403,11 +429,14 @@ def reconstruct_regularised_points(
     uv = jnp.where(w[..., None] > 0, jnp.asarray(uv, dtype), 0.0)
     per_step = _per_step(uv)
 
-    def solved(pen, choice):  # every point with the penalty ``pen`` (k,), depth flagged
+    def flagged(res, choice):
+        return flag_undetermined_depth(res, P, times, order, max_rms_px=max_rms_px), basis, choice
+
+    def solved(pen, choice):  # every point with the penalty ``pen`` (k,)
         res = _reconstruct_points(
             P, uv, Phi, w, jnp.asarray(MAX_GAIN, dtype), 1, True, pen, per_step
         )
-        return flag_undetermined_depth(res, P, times, order), basis, choice
+        return flagged(res, choice)
 
     if lam is not None:
         return solved(jnp.asarray(lam, dtype) * rough, None)
@@ -419,8 +448,9 @@ def reconstruct_regularised_points(
     if criterion == "gcv":
         gcv_per_step = points_per_step(GCV_BATCH, GCV_BATCH_ACCELERATOR, uv)
         if tracks is None:
-            res, choice = _regularised_points_gcv(P, uv, Phi, w, rough, grid, healthy, gcv_per_step)
-            return flag_undetermined_depth(res, P, times, order), basis, choice
+            return flagged(
+                *_regularised_points_gcv(P, uv, Phi, w, rough, grid, healthy, gcv_per_step)
+            )
         sel = np.asarray(tracks)
         _, choice = _regularised_points_gcv(
             P, uv[sel], Phi, w[sel], rough, grid, healthy, gcv_per_step
@@ -428,7 +458,8 @@ def reconstruct_regularised_points(
         choice = _shared(choice, grid, tracks)
         return solved(choice.lam[0] * rough, choice)
     cv_per_step = points_per_step(CV_BATCH, CV_BATCH_ACCELERATOR, uv)
-    res, choice = _regularised_points(
-        P, uv, Phi, w, rough, grid, held, healthy, tracks, cv_per_step, per_step
+    return flagged(
+        *_regularised_points(
+            P, uv, Phi, w, rough, grid, held, healthy, tracks, cv_per_step, per_step
+        )
     )
-    return flag_undetermined_depth(res, P, times, order), basis, choice
