@@ -74,3 +74,34 @@ def dense_lstsq(P, uv, basis, weights=None):
     Theta = np.kron(basis, np.eye(3))
     beta = np.linalg.lstsq(Q @ Theta, q, rcond=None)[0]
     return beta.reshape(k, 3)
+
+
+def limb_scene(rng, F=150, camera="orbit", deg=2.0, noise=0.5, rate=30.0):
+    """A point moving like a limb (four sinusoids of 0.2-2 Hz per axis, 0.15 m each, not in
+    a small DCT span) seen from 3 m (f = 800, 640x480) by a camera orbiting it at ``deg``
+    per frame, 20 deg up (``camera="orbit"``), or moving like a fast robot (the robot
+    scenes' ``"fast"`` wobble pushed out to 3 m): returns times, X, P, uv."""
+    from tests.test_estimators_scenes import camera_centres
+
+    K = np.array([[800.0, 0.0, 319.5], [0.0, 800.0, 239.5], [0.0, 0.0, 1.0]])
+    t = np.arange(F) / rate
+    X = np.zeros((F, 3))
+    for a in range(3):
+        for _ in range(4):
+            X[:, a] += 0.15 * np.sin(2 * np.pi * rng.uniform(0.2, 2.0) * t + rng.uniform(0, 6.3))
+    X[:, 2] += 1.0
+    centre = X.mean(axis=0)
+    if camera == "orbit":
+        ang = rng.uniform(0, 2 * np.pi) + np.deg2rad(deg) * np.arange(F)
+        el = np.deg2rad(20.0)
+        C = np.stack([np.cos(ang) * np.cos(el), np.sin(ang) * np.cos(el), np.full(F, np.sin(el))])
+        C = C.T
+    else:
+        C = camera_centres(rng, t, X, camera) - centre
+        C /= np.linalg.norm(C, axis=1, keepdims=True)
+    P = []
+    for c in centre + 3.0 * C:
+        R, tc = jt.look_at(c, centre, up_w=(0.0, 0.0, 1.0))
+        P.append(K @ np.hstack([np.asarray(R), np.asarray(tc)[:, None]]))
+    P = np.array(P)
+    return t, X, P, project_np(P, X) + noise * rng.normal(size=(F, 2))

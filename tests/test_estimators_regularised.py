@@ -227,10 +227,13 @@ def test_gcv_choice_is_as_accurate_as_kfold_on_random_and_fast_cameras():
 def test_fit_collapsed_towards_a_slow_camera_is_flagged_by_its_reprojection_rms():
     """A stiff penalty on a slow camera can pull the fit of the ray constraints towards the
     camera centres, which satisfy every constraint: 1.4 m off at 48 px RMS, with a small
-    gain and kappa, so only the reprojection test flags it (this weight is the 5-fold
-    choice for this track). A well-posed track keeps its status OK."""
+    gain and kappa of the fit (this weight is the 5-fold choice for this track). Two tests
+    flag it: the reprojection RMS and the solver's depth test on the fit moved onto its
+    rays (which alone still flags it with the first test off). A well-posed track keeps
+    its status OK."""
     from jaxtraj.estimators import reconstruct_regularised_points
     from jaxtraj.estimators.regularised import MAX_RMS_PX
+    from jaxtraj.solve import MAX_DEPTH_UNCERTAINTY
 
     rng = np.random.default_rng(102)
     for _ in range(3):  # the third slow scene of this stream
@@ -243,7 +246,9 @@ def test_fit_collapsed_towards_a_slow_camera_is_flagged_by_its_reprojection_rms(
     off, _, _ = reconstruct_regularised_points(
         s["P"], uv, s["times"], k=60, lam=1e8, max_rms_px=np.inf
     )
-    assert int(off.status[0]) == jt.Status.OK  # the gain and kappa alone pass it
+    # without the reprojection test, the depths on the rays are not determined either
+    assert int(off.status[0]) == jt.Status.DEGENERATE
+    assert float(off.depth_uncertainty[0]) > MAX_DEPTH_UNCERTAINTY
     good = robot_scene(np.random.default_rng(100), F=150, rate=15.0, mode="random", noise=0.3)
     res, _, _ = reconstruct_regularised_points(
         good["P"], np.asarray(good["uv"])[None], good["times"], k=60, lam=1.0

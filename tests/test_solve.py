@@ -6,7 +6,15 @@ import pytest
 from jax.test_util import check_grads
 
 import jaxtraj as jt
-from tests._scenes import K640, dense_lstsq, project_np, random_cameras, scene, smooth_curve
+from tests._scenes import (
+    K640,
+    dense_lstsq,
+    limb_scene,
+    project_np,
+    random_cameras,
+    scene,
+    smooth_curve,
+)
 
 
 def _rel(a, b):
@@ -242,3 +250,82 @@ def test_slow_smooth_robot_camera_is_flagged_not_silently_wrong():
             err = np.mean(np.linalg.norm(np.asarray(res.points - s.points), axis=1))
             # Either the answer is good or it is flagged.
             assert err < 0.01 or int(res.status) == jt.Status.DEGENERATE, (seed, k, err)
+
+
+def test_fit_whose_depth_the_data_do_not_determine_is_flagged():
+    """A camera orbiting at 2 deg/frame moves less than a limb-like point: the DCT fit (k =
+    4, 6) slides metres along the rays while the conditioning gain stays below 20, so the
+    gain alone returned it as OK. Its depth uncertainty on the rays is about 1 and flags it;
+    ``max_depth_uncertainty=inf`` gives back the gain-only status (with the relative error
+    test off too, which would also flag these fits). Random cameras: OK."""
+    inf, old_ok = np.inf, 0
+    for seed in range(3):
+        t, X, P, uv = limb_scene(np.random.default_rng(seed), deg=2.0)
+        for k in (4, 6):
+            B = jt.dct_basis(t, k)
+            res = jt.reconstruct(P, uv, B)
+            err = np.sqrt(np.mean(np.sum((np.asarray(res.points) - X) ** 2, axis=1)))
+            assert err > 1.0  # metres off ...
+            assert int(res.status) == jt.Status.DEGENERATE  # ... and flagged
+            assert float(res.depth_uncertainty) > 0.9
+            old = jt.reconstruct(P, uv, B, max_depth_uncertainty=inf, max_relative_error=inf)
+            old_ok += int(old.status) == jt.Status.OK and float(old.gain) < 20.0
+            batched = jt.reconstruct_points(P, uv[None], B)
+            assert int(batched.status[0]) == int(res.status)
+            np.testing.assert_allclose(batched.depth_uncertainty[0], res.depth_uncertainty, 1e-9)
+    assert old_ok >= 5  # measured: 6 of 6 passed the gain test
+
+    rng = np.random.default_rng(7)
+    s = scene(rng, F=60, k=8, noise=0.5, in_span=False)
+    res = jt.reconstruct(s["P"], s["uv"], s["basis"])
+    assert int(res.status) == jt.Status.OK and float(res.depth_uncertainty) < 0.05
+
+
+def test_fit_far_off_across_and_along_the_rays_is_flagged():
+    """A fast robot-like camera 3 m from a limb-like point, with k = 6 or 8: the fit misses
+    the rays by 60-80 px and the gain (8-9) can make the error along them larger still. The
+    depth test passes (kappa 0.23-0.28) and the gain is below 20, but the relative error
+    scale (gain x angular miss, 0.6-0.8) flags the fit, 0.65-0.76 m off at 3 m. k = 20
+    fits the same tracks within 0.03-0.46 m with a relative error of 0.05-0.45: OK."""
+    for seed in (1, 9):
+        t, X, P, uv = limb_scene(np.random.default_rng(seed), camera="fast")
+        for k, bad in ((6, True), (8, True), (20, False)):
+            res = jt.reconstruct(P, uv, jt.dct_basis(t, k))
+            err = np.sqrt(np.mean(np.sum((np.asarray(res.points) - X) ** 2, axis=1)))
+            rel = float(res.relative_error)
+            assert float(res.gain) < 20.0 and float(res.depth_uncertainty) < 0.3
+            assert err / 3.0 < 1.6 * rel  # the scale covers the error (measured: 0.6-0.9x)
+            if bad:
+                assert err > 0.6 and rel > 0.5 and int(res.status) == jt.Status.DEGENERATE
+                off = jt.reconstruct(P, uv, jt.dct_basis(t, k), max_relative_error=np.inf)
+                assert int(off.status) == jt.Status.OK  # the other tests pass it
+            else:
+                assert rel < 0.5 and int(res.status) == jt.Status.OK
+
+
+def test_status_bounds_reject_bad_values(rng):
+    s = scene(rng, F=30, k=4)
+    for bad in (0.0, -1.0, True, "0.3", None):
+        for name in ("max_depth_uncertainty", "max_relative_error"):
+            with pytest.raises(ValueError, match=name):
+                jt.reconstruct(s["P"], s["uv"], s["basis"], **{name: bad})
+            with pytest.raises(ValueError, match=name):
+                jt.reconstruct_points(s["P"], s["uv"][None], s["basis"], **{name: bad})
+
+
+def test_on_rays_keeps_depths_and_reprojects_exactly(rng):
+    """The points moved onto the rays reproject onto the pixels, keep their distance along
+    each ray from the camera, and unobserved frames keep their point."""
+    from jaxtraj.depth import camera_centres, on_rays
+
+    s = scene(rng, F=30, k=4, noise=0.5)
+    x = s["X"] + 0.05 * rng.normal(size=s["X"].shape)
+    observed = np.ones(30, bool)
+    observed[[3, 17]] = False
+    y = np.asarray(on_rays(x, s["P"], s["uv"], observed))
+    np.testing.assert_allclose(project_np(s["P"], y)[observed], s["uv"][observed], atol=1e-8)
+    np.testing.assert_array_equal(y[~observed], x[~observed])
+    C = np.asarray(camera_centres(jnp.asarray(s["P"])))
+    d = y - C
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    np.testing.assert_allclose(np.sum(d * (y - C), 1), np.sum(d * (x - C), 1), rtol=1e-10)

@@ -45,7 +45,7 @@ from jaxtyping import Array, ArrayLike, Float
 
 from .._checks import check_shape
 from .._linalg import matmul_small
-from ..estimators._depth import depth_uncertainty
+from ..depth import depth_uncertainty
 from ..robot.chain import KinematicChain
 from ..robot.kinematics import joint_frames
 from .bspline import bspline_basis, clamped_knots

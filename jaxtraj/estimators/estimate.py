@@ -75,10 +75,10 @@ from jaxtyping import Array, ArrayLike, Float, Int
 
 from .._batching import map_points, points_per_step
 from .._checks import is_concrete
+from ..depth import camera_centres, depth_uncertainty
 from ..solve import Status
 from ._common import as_float, check_loss, check_positive, normalise_cameras
 from ._dct_candidate import data_blocks, dct_fit
-from ._depth import camera_centres, depth_uncertainty
 from .smoothness import (
     _neg2_log_evidence,
     _q_unit,

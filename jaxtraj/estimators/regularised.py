@@ -52,11 +52,14 @@ from .._checks import check_finite, check_shape, check_tracks
 from .._spd import top_eigenvalue
 from ..basis import DCTBasis
 from ..solve import (
+    MAX_DEPTH_UNCERTAINTY,
+    MAX_RELATIVE_ERROR,
     Reconstruction,
     _assemble,
     _frame_blocks,
     _frame_spread,
     _per_step,
+    _ray_checks,
     _reconstruct_points,
     _reprojection_rms,
     _status,
@@ -321,7 +324,9 @@ def _gcv_track(P, uv, Phi, Lg, w, rough, grid, healthy_gain, max_gain):
     coeffs = beta.reshape(k, 3)
     points = Phi @ coeffs
     finite = jnp.all(jnp.isfinite(uv), axis=1) | ~observed
+    kappa, rel = _ray_checks(P, points, Q, observed, gain[i])
     degenerate = (gain[i] > max_gain) | ~jnp.isfinite(gain[i]) | ~jnp.all(jnp.isfinite(beta))
+    degenerate = degenerate | ~(kappa <= MAX_DEPTH_UNCERTAINTY) | (rel > MAX_RELATIVE_ERROR)
     n_obs = jnp.sum(observed).astype(jnp.int32)
     res = Reconstruction(
         coeffs=coeffs,
@@ -330,6 +335,8 @@ def _gcv_track(P, uv, Phi, Lg, w, rough, grid, healthy_gain, max_gain):
         gain=gain[i],
         num_observed=n_obs,
         status=_status(finite, P, n_obs, k, True, degenerate),
+        depth_uncertainty=kappa,
+        relative_error=rel,
     )
     choice = PenaltyChoice(lam=grid[i], grid=grid, cv_rms_px=score, gain=gain, criterion=crit)
     return res, choice

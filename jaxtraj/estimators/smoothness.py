@@ -45,6 +45,7 @@ from jaxtyping import Array, ArrayLike, Float, Int
 
 from .._checks import check_shape, check_tracks, is_concrete
 from .._linalg import matmul_small, solve_spd_small
+from ..depth import camera_centres, depth_uncertainty
 from ..solve import Status
 from . import _blocktri as bt
 from ._common import (
@@ -59,7 +60,6 @@ from ._common import (
     rho_weight,
     validate_track,
 )
-from ._depth import camera_centres, depth_uncertainty
 
 __all__ = [
     "Smoothed",
