@@ -1,5 +1,6 @@
-"""First-order covariance of the DCT solve: exact Jacobian reference, Monte-Carlo spread
-under pixel and camera-pose noise, batching and bad inputs."""
+"""Covariance of the DCT solve: the first-order part against an exact Jacobian reference and
+the Monte-Carlo spread under pixel and camera-pose noise; the model-error term on tracks
+outside the span; batching and bad inputs."""
 
 from __future__ import annotations
 
@@ -11,6 +12,8 @@ import pytest
 import jaxtraj as jt
 from jaxtraj.estimators import dct_covariance, points_covariance
 from jaxtraj.estimators.covariance import _hat
+from tests._scenes import limb_scene
+from tests._scenes import scene as core_scene
 from tests.test_estimators_scenes import robot_scene
 
 F, K = 40, 6
@@ -29,7 +32,8 @@ def _coeffs(s, uv):
 
 def test_equals_linearised_solve(scene):
     s = scene
-    cov = dct_covariance(s["P"], s["uv"], s["basis"], _coeffs(s, s["uv"]), pixel_sigma=0.5)
+    c = _coeffs(s, s["uv"])
+    cov = dct_covariance(s["P"], s["uv"], s["basis"], c, pixel_sigma=0.5, model_error=False)
     J = jax.jit(jax.jacfwd(lambda u: jt.reconstruct(s["P"], u, s["basis"]).coeffs.reshape(-1)))(
         jnp.asarray(s["uv"])
     ).reshape(3 * K, -1)
@@ -50,7 +54,8 @@ def test_matches_monte_carlo_pixel_noise(scene, rng):
     solve = jax.jit(lambda uv: jt.reconstruct_points(s["P"], uv, s["basis"]).points)
     pts = np.asarray(solve(s["clean"][None] + 0.5 * rng.normal(size=(n, F, 2))))
     emp = np.einsum("nfi,nfj->fij", pts - pts.mean(0), pts - pts.mean(0)) / (n - 1)
-    cov = dct_covariance(s["P"], s["clean"], s["basis"], _coeffs(s, s["clean"]), pixel_sigma=0.5)
+    c = _coeffs(s, s["clean"])
+    cov = dct_covariance(s["P"], s["clean"], s["basis"], c, pixel_sigma=0.5, model_error=False)
     ratio = np.trace(emp, axis1=1, axis2=2) / np.trace(np.asarray(cov.points), axis1=1, axis2=2)
     # sampling error of a variance from n draws: about sqrt(2 / n) = 3.7 %
     assert abs(np.mean(ratio) - 1) < 0.03
@@ -69,7 +74,13 @@ def test_matches_monte_carlo_pose_noise(scene, rng):
     emp = np.einsum("nfi,nfj->fij", pts - pts.mean(0), pts - pts.mean(0)) / (n - 1)
     pose_cov = np.tile(np.diag(sd**2), (F, 1, 1))
     cov = dct_covariance(
-        s["P"], s["clean"], s["basis"], _coeffs(s, s["clean"]), pixel_sigma=1e-9, pose_cov=pose_cov
+        s["P"],
+        s["clean"],
+        s["basis"],
+        _coeffs(s, s["clean"]),
+        pixel_sigma=1e-9,
+        pose_cov=pose_cov,
+        model_error=False,
     )
     ratio = np.trace(emp, axis1=1, axis2=2) / np.trace(np.asarray(cov.points), axis1=1, axis2=2)
     assert abs(np.mean(ratio) - 1) < 0.06
@@ -121,3 +132,35 @@ def test_bad_inputs(scene):
         dct_covariance(s["P"], s["uv"], s["basis"], c, pixel_sigma=np.ones(3))
     with pytest.raises(ValueError, match="coeffs_cov"):
         points_covariance(s["basis"], np.eye(5))
+
+
+def test_model_error_covers_truncation_and_vanishes_inside_the_span(rng):
+    """Outside the span (a limb-like point, fast robot-like camera, k = 8, 20): the error is
+    5-300 first-order standard deviations (sd: sqrt of the trace); with the model-error
+    term it is 0.16-0.38 sd on average and the mean NEES (3 dof) 1.6-2.4 (asserted: below
+    1 sd and below 3). Inside the span (noise 0.5 px) the term vanishes."""
+    cov = jax.jit(
+        lambda P, u, B, c, m: dct_covariance(P, u, B, c, pixel_sigma=0.5, model_error=m).points,
+        static_argnums=4,
+    )
+    for seed in (1, 9):
+        t, X, P, uv = limb_scene(np.random.default_rng(seed), camera="fast")
+        for k in (8, 20):
+            B = jt.dct_basis(t, k)
+            res = jt.reconstruct(P, uv, B)
+            e = np.asarray(res.points) - X
+            full = np.asarray(cov(P, uv, B, res.coeffs, True))
+            sd_first = np.sqrt(
+                np.trace(np.asarray(cov(P, uv, B, res.coeffs, False)), axis1=1, axis2=2)
+            )
+            sd = np.sqrt(np.trace(full, axis1=1, axis2=2))
+            err = np.linalg.norm(e, axis=1)
+            assert np.mean(err / sd_first) > 4  # noise alone cannot explain it (4.7-288)
+            assert np.mean(err / sd) < 1.0
+            nees = np.einsum("fi,fij,fj->f", e, np.linalg.pinv(full, hermitian=True), e)
+            assert np.mean(nees) < 3.0
+    s = core_scene(rng, F=60, k=6, noise=0.5)
+    res = jt.reconstruct(s["P"], s["uv"], s["basis"])
+    a = dct_covariance(s["P"], s["uv"], s["basis"], res.coeffs, pixel_sigma=0.5)
+    b = dct_covariance(s["P"], s["uv"], s["basis"], res.coeffs, pixel_sigma=0.5, model_error=False)
+    np.testing.assert_allclose(np.asarray(a.points), np.asarray(b.points), rtol=1e-12, atol=0)

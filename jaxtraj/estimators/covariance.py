@@ -25,7 +25,8 @@ import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
 from .._checks import check_shape
-from ..solve import _factorise, _kron_sum, normal_equations
+from ..depth import _on_rays, camera_centres
+from ..solve import _factorise, _frame_spread, _gain_bound, _kron_sum, normal_equations
 from ._common import as_float, validate_track
 
 __all__ = ["ReconstructionCovariance", "dct_covariance", "points_covariance"]
@@ -85,8 +86,20 @@ def dct_covariance(
     *,
     pixel_sigma: float | Float[ArrayLike, " F"] = 1.0,
     pose_cov: Float[ArrayLike, "F 6 6"] | None = None,
+    model_error: bool = True,
 ) -> ReconstructionCovariance:
     """First-order covariance of :func:`jaxtraj.reconstruct`'s coefficients and points.
+
+    The first-order terms cover the pixel (and pose) noise only. A basis too small for the
+    motion leaves a model error that no noise level explains; with ``model_error`` the
+    point covariances add, per frame, the part of the reprojection residual beyond the
+    stated ``pixel_sigma``: across the ray, the fit's measured miss ``m_i`` (fit to its
+    ray at the same depth, :func:`jaxtraj.depth.on_rays`), and along it the error scale of
+    :attr:`jaxtraj.Reconstruction.relative_error` (gain times RMS angular miss) times the
+    distance from the camera, both scaled by ``1 - 2 pixel_sigma^2 / rms^2`` (``rms``: the
+    reprojection RMS of the 2D pixel error; 0 when the
+    residual is at the noise level, so that a fit inside the span keeps the first-order
+    covariance). ``coeffs`` stays the first-order covariance.
 
     jit-, vmap- and grad-compatible.
 
@@ -99,6 +112,7 @@ def dct_covariance(
         pixel_sigma: pixel noise standard deviation [px], scalar or (F,).
         pose_cov: optional (F, 6, 6) covariance of the camera-pose perturbation
             ``(rho [m], theta [rad])`` of ``T_w_c`` in the world frame per frame.
+        model_error: add the basis's model error to ``points`` (above).
 
     Returns:
         A :class:`ReconstructionCovariance`.
@@ -138,7 +152,52 @@ def dct_covariance(
     # batched over points or design samples deadlocked on 2 cores with jaxlib 0.10)
     W, dd = _factorise(N)
     cov = _sandwich(W, dd, _kron_sum(basis, blocks))
-    return ReconstructionCovariance(coeffs=cov, points=points_covariance(basis, cov))
+    points = points_covariance(basis, cov)
+    if model_error:
+        sig2 = jnp.broadcast_to(sig**2, (F,))
+        points = points + _model_error_blocks(P, uv, basis, T, w, W, dd, sig2)
+    return ReconstructionCovariance(coeffs=cov, points=points)
+
+
+def _model_error_blocks(P, uv, basis, T, w, W, dd, sig2):
+    """(F, 3, 3) model-error term of :func:`dct_covariance` at the fit ``T`` (F, 3)."""
+    obs = w > 0
+    Q = P[:, :2, :3] - uv[:, :, None] * P[:, 2:3, :3]  # normals of the planes through each ray
+    C = camera_centres(P)
+    gain = _gain_bound(basis, W, dd, _frame_spread(Q, w)[1])
+    y = _on_rays(T, Q, C, obs)
+    m = y - T  # across the ray: the fit's measured miss
+    v = y - C  # along the observed ray, to the fit's depth
+    dist = jnp.maximum(jnp.linalg.norm(T - C, axis=1), jnp.finfo(T.dtype).tiny)
+    n = jnp.maximum(jnp.sum(obs), 1)
+    angle2 = jnp.sum(jnp.where(obs, jnp.sum(m * m, axis=1) / dist**2, 0.0)) / n
+    rms2 = jnp.sum(jnp.where(obs, jnp.sum((_project(P, T) - uv) ** 2, axis=1), 0.0)) / n
+    noise2 = 2.0 * jnp.sum(jnp.where(obs, sig2, 0.0)) / n  # two pixel coordinates
+    excess = jnp.clip(1.0 - noise2 / jnp.maximum(rms2, jnp.finfo(T.dtype).tiny), 0.0)
+    along = (gain**2 * angle2) * v[:, :, None] * v[:, None, :]  # (rel |v|)^2 along the ray
+    # the miss is measured against the noisy ray: add the ray's own pixel noise at that depth
+    J = jax.vmap(_ray_point_jacobian)(P, uv, v)  # (F, 3, 2)
+    across = m[:, :, None] * m[:, None, :] + sig2[:, None, None] * jnp.einsum("fia,fja->fij", J, J)
+    return jnp.where(jnp.isfinite(gain) & obs[:, None, None], excess, 0.0) * (across + along)
+
+
+def _ray_point_jacobian(P_i, uv_i, v_i):
+    """(3, 2) derivative with respect to the pixel of the point at offset ``v_i`` from the
+    camera along the ray through ``uv_i`` (the point's distance held fixed)."""
+    dist = jnp.linalg.norm(v_i)
+
+    def point(u):
+        rows = P_i[:2, :3] - u[:, None] * P_i[2:3, :3]
+        d = jnp.cross(rows[0], rows[1])
+        d = d / jnp.linalg.norm(d)
+        return dist * jnp.sign(jax.lax.stop_gradient(d @ v_i)) * d
+
+    return jax.jacfwd(point)(uv_i)
+
+
+def _project(P, X):
+    h = jnp.einsum("fij,fj->fi", P[:, :, :3], X) + P[:, :, 3]
+    return h[:, :2] / h[:, 2:3]
 
 
 def _pixel_blocks(P, uv, T, w, sig2):
