@@ -99,7 +99,8 @@ def dct_covariance(
     distance from the camera, both scaled by ``1 - 2 pixel_sigma^2 / rms^2`` (``rms``: the
     reprojection RMS of the 2D pixel error; 0 when the
     residual is at the noise level, so that a fit inside the span keeps the first-order
-    covariance). ``coeffs`` stays the first-order covariance.
+    covariance). Frames without a pixel (weight 0) take the observed frames' mean term.
+    ``coeffs`` stays the first-order covariance.
 
     jit-, vmap- and grad-compatible.
 
@@ -178,7 +179,11 @@ def _model_error_blocks(P, uv, basis, T, w, W, dd, sig2):
     # the miss is measured against the noisy ray: add the ray's own pixel noise at that depth
     J = jax.vmap(_ray_point_jacobian)(P, uv, v)  # (F, 3, 2)
     across = m[:, :, None] * m[:, None, :] + sig2[:, None, None] * jnp.einsum("fia,fja->fij", J, J)
-    return jnp.where(jnp.isfinite(gain) & obs[:, None, None], excess, 0.0) * (across + along)
+    blocks = jnp.where(obs[:, None, None], across + along, 0.0)
+    # frames without a pixel (outside the image) have no miss to measure, but the basis
+    # misses the motion there too: they take the observed frames' mean block
+    blocks = jnp.where(obs[:, None, None], blocks, jnp.sum(blocks, axis=0) / n)
+    return jnp.where(jnp.isfinite(gain), excess, 0.0) * blocks
 
 
 def _ray_point_jacobian(P_i, uv_i, v_i):
