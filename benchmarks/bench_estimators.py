@@ -63,6 +63,7 @@ from jaxtraj.estimators import (  # noqa: E402
     fit_rigid_trajectory,
     reconstruct_regularised,
     refine_points,
+    regularised_covariance,
     roughness_penalty,
     select_k_cv,
     select_penalty_cv,
@@ -777,9 +778,13 @@ def trust_estimators():
             (None, 0, None, 0),
         )
     )
-    reg = jax.jit(
-        jax.vmap(lambda P, u, t, w: reconstruct_regularised(P, u, t, w)[0], (None, 0, None, 0))
-    )
+
+    def reg_one(P, u, t, w, s):  # the fit and its covariance (regularised_covariance)
+        res, basis, choice = reconstruct_regularised(P, u, t, w)
+        cov = regularised_covariance(P, u, t, basis, res.coeffs, choice.lam, w, pixel_sigma=s)
+        return res, cov.points
+
+    reg = jax.jit(jax.vmap(reg_one, (None, 0, None, 0, None)))
     cov = jax.jit(
         jax.vmap(
             lambda P, u, b, c, w, s: dct_covariance(P, u, b, c, w, pixel_sigma=s).points,
@@ -807,8 +812,8 @@ def trust_scene_rows(P, uv, times, w, Xs, sigma, compiled):
         if hasattr(r, "dct_k"):  # estimate_points: where the DCT basis was chosen
             rows[key]["dct"] = np.asarray(r.dct_k) > 0
         rows[key]["ms"] = 1e3 * time_call(fn, repeats=2).median / N
-    r = reg_fn(P, uv, times, w)
-    rows["reg"] = _trajectory_stats(r.points, None, r.status, Xs)
+    r, reg_cov = reg_fn(P, uv, times, w, sigma)
+    rows["reg"] = _trajectory_stats(r.points, reg_cov, r.status, Xs)
 
     def dct(k):
         b = jt.dct_basis(times, k)
@@ -1007,8 +1012,8 @@ def trust_markdown(results) -> str:
         "status, the DCT's Reconstruction.status). NEES: (x - x_true)^T cov^-1 (x - x_true) "
         "per frame (3 dof, ideal 3), averaged over frames, then over OK trajectories "
         "(estimate_points: .cov with its along-ray term; smoother: posterior .cov; DCT: "
-        "dct_covariance; the regularised DCT has none here, dct_covariance ignores the "
-        "penalty). '> 5 sd': trajectories whose error exceeds 5x their mean sqrt(trace "
+        "dct_covariance with its model-error term; regularised DCT: regularised_covariance"
+        "). '> 5 sd': trajectories whose error exceeds 5x their mean sqrt(trace "
         "cov), and the share of them flagged. Noise-free cells ('clean') give "
         f"pixel_sigma = {CLEAN_SIGMA} px to estimate_points, the smoothers and the DCT "
         "covariance. Auto-k DCT: select_k_cv (gain-weighted) per point, one k per scene "

@@ -35,7 +35,13 @@ from jaxtyping import Array, ArrayLike, Bool, Float
 
 from .camera import camera_centre
 
-__all__ = ["camera_centres", "depth_uncertainty", "on_rays", "ray_depth_uncertainty"]
+__all__ = [
+    "camera_centres",
+    "depth_uncertainty",
+    "on_rays",
+    "ray_depth_uncertainty",
+    "with_ray_bound",
+]
 
 
 def camera_centres(P: Float[Array, "F 3 4"]) -> Float[Array, "F 3"]:
@@ -122,3 +128,21 @@ def ray_depth_uncertainty(
     C = camera_centres(jnp.asarray(P, x.dtype)) if centres is None else centres
     t = jnp.arange(x.shape[0], dtype=x.dtype) if times is None else times
     return depth_uncertainty(on_rays(x, P, uv, observed, C), C, t, order)
+
+
+def with_ray_bound(
+    cov: Float[ArrayLike, "F 3 3"], d: Float[ArrayLike, "F 3"], rel_sd: Float[ArrayLike, ""]
+) -> Float[Array, "F 3 3"]:
+    """Point covariances ``cov`` with the standard deviation along each ray ``d_i`` (the
+    point minus the camera centre) raised to at least ``rel_sd |d_i|``: adds
+    ``max(rel_sd^2 |d_i|^2 - u_i^T cov_i u_i, 0) u_i u_i^T`` (``u_i = d_i / |d_i|``). The
+    estimators pass ``rel_sd = kappa / 2`` (:func:`depth_uncertainty` as a two-standard-
+    deviation bound of the relative error along the rays)."""
+    cov = jnp.asarray(cov)
+    d = jnp.asarray(d, cov.dtype)
+    n2 = jnp.sum(d * d, axis=-1)
+    tiny = jnp.finfo(d.dtype).tiny
+    u = d / jnp.sqrt(jnp.maximum(n2, tiny))[:, None]
+    along = jnp.einsum("fi,fij,fj->f", u, cov, u)
+    extra = jnp.maximum(rel_sd**2 * n2 - along, 0.0)
+    return cov + extra[:, None, None] * u[:, :, None] * u[:, None, :]

@@ -48,6 +48,36 @@ def test_equals_linearised_solve(scene):
     np.testing.assert_allclose(np.asarray(cov.std), np.sqrt(np.diagonal(pts, axis1=1, axis2=2)))
 
 
+def test_penalty_gives_the_posterior_form(scene):
+    """With a penalty ``pen`` the coefficients' covariance is the penalised solve's
+    linearised noise spread plus ``s^2 N^-1 pen N^-1`` (``N`` with the penalty, ``s^2`` the
+    mean ``w d^2 sigma^2`` of a ray-constraint row), computed here densely."""
+    s = scene
+    pen = 2e3 * np.arange(1, K + 1, dtype=float) ** 4  # the prior term: 26 % of the trace
+    c = jt.reconstruct(s["P"], s["uv"], s["basis"], penalty=pen).coeffs
+    kw = {"pixel_sigma": 0.5, "model_error": False}
+    cov = dct_covariance(s["P"], s["uv"], s["basis"], c, penalty=pen, **kw)
+    J = jax.jit(
+        jax.jacfwd(lambda u: jt.reconstruct(s["P"], u, s["basis"], penalty=pen).coeffs.reshape(-1))
+    )(jnp.asarray(s["uv"])).reshape(3 * K, -1)
+    N, _ = jt.normal_equations(s["P"], s["uv"], s["basis"])
+    Ninv = np.linalg.inv(np.asarray(N) + np.diag(np.repeat(pen, 3)))
+    T = s["basis"] @ np.asarray(c)
+    d = np.einsum("fj,fj->f", s["P"][:, 2, :], np.hstack([T, np.ones((F, 1))]))
+    ref = 0.25 * J @ J.T + np.mean(0.25 * d**2) * Ninv @ np.diag(np.repeat(pen, 3)) @ Ninv
+    np.testing.assert_allclose(
+        np.asarray(cov.coeffs), ref, rtol=1e-7, atol=1e-9 * np.abs(ref).max()
+    )
+    # a zero penalty is the unpenalised covariance
+    zero = dct_covariance(
+        s["P"], s["uv"], s["basis"], _coeffs(s, s["uv"]), penalty=np.zeros(K), **kw
+    )
+    plain = dct_covariance(s["P"], s["uv"], s["basis"], _coeffs(s, s["uv"]), **kw)
+    np.testing.assert_allclose(np.asarray(zero.coeffs), np.asarray(plain.coeffs), rtol=1e-9)
+    with pytest.raises(ValueError, match="penalty"):
+        dct_covariance(s["P"], s["uv"], s["basis"], c, penalty=np.ones(K + 1))
+
+
 def test_matches_monte_carlo_pixel_noise(scene, rng):
     s = scene
     n = 1500

@@ -29,6 +29,7 @@ from .refine import refine_points as refine_points
 from .regularised import PenaltyChoice as PenaltyChoice
 from .regularised import reconstruct_regularised as reconstruct_regularised
 from .regularised import reconstruct_regularised_points as reconstruct_regularised_points
+from .regularised import regularised_covariance as regularised_covariance
 from .regularised import roughness_penalty as roughness_penalty
 from .regularised import select_penalty_cv as select_penalty_cv
 from .select_k import KSelection as KSelection

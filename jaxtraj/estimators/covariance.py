@@ -87,6 +87,7 @@ def dct_covariance(
     pixel_sigma: float | Float[ArrayLike, " F"] = 1.0,
     pose_cov: Float[ArrayLike, "F 6 6"] | None = None,
     model_error: bool = True,
+    penalty: Float[ArrayLike, " k"] | None = None,
 ) -> ReconstructionCovariance:
     """First-order covariance of :func:`jaxtraj.reconstruct`'s coefficients and points.
 
@@ -114,6 +115,13 @@ def dct_covariance(
         pose_cov: optional (F, 6, 6) covariance of the camera-pose perturbation
             ``(rho [m], theta [rad])`` of ``T_w_c`` in the world frame per frame.
         model_error: add the basis's model error to ``points`` (above).
+        penalty: (k,) the diagonal penalty of a penalised fit (``penalty=`` of
+            :func:`jaxtraj.reconstruct`), read as a prior on the coefficients: the
+            posterior covariance ``N^-1 (J + s^2 pen) N^-1`` (``N`` with the penalty, ``J``
+            the noise terms, ``s^2`` a ray-constraint row's noise variance averaged over the
+            frames), about ``s^2 N^-1``. The noise-only sandwich would leave out the
+            penalty's bias, which a stiff penalty makes larger than the spread.
+            :func:`~jaxtraj.estimators.regularised_covariance` adds the along-ray bound.
 
     Returns:
         A :class:`ReconstructionCovariance`.
@@ -129,13 +137,18 @@ def dct_covariance(
         )
     if pose_cov is not None:
         check_shape("pose_cov", pose_cov, (F, 6, 6), "per-frame 6x6 pose covariance")
-    P, uv, basis, coeffs, weights, sig, pose_cov = as_float(
-        P, uv, basis, coeffs, weights, pixel_sigma, pose_cov
+    if penalty is not None:
+        check_shape("penalty", penalty, (k,), "(k,) diagonal penalty per coefficient")
+    P, uv, basis, coeffs, weights, sig, pose_cov, penalty = as_float(
+        P, uv, basis, coeffs, weights, pixel_sigma, pose_cov, penalty
     )
     w = jnp.ones(F, P.dtype) if weights is None else weights
     obs = w > 0
     uv = jnp.where(obs[:, None], uv, 0.0)
     N, _ = normal_equations(P, uv, basis, w)
+    pen3 = None if penalty is None else jnp.repeat(penalty, 3)
+    if pen3 is not None:
+        N = N + jnp.diag(pen3)
     T = basis @ coeffs
     blocks = _pixel_blocks(P, uv, T, w, jnp.broadcast_to(sig**2, (F,)))
     if pose_cov is not None:
@@ -152,20 +165,33 @@ def dct_covariance(
     # N^-1 from the solver's own factor (jaxtraj.solve._factorise: no LAPACK call, which
     # batched over points or design samples deadlocked on 2 cores with jaxlib 0.10)
     W, dd = _factorise(N)
-    cov = _sandwich(W, dd, _kron_sum(basis, blocks))
+    middle = _kron_sum(basis, blocks)
+    if pen3 is not None:
+        middle = middle + _prior_scale(P, T, w, sig) * jnp.diag(pen3)
+    cov = _sandwich(W, dd, middle)
     points = points_covariance(basis, cov)
     if model_error:
         sig2 = jnp.broadcast_to(sig**2, (F,))
-        points = points + _model_error_blocks(P, uv, basis, T, w, W, dd, sig2)
+        points = points + _model_error_blocks(P, uv, basis, T, w, W, dd, sig2, pen3)
     return ReconstructionCovariance(coeffs=cov, points=points)
 
 
-def _model_error_blocks(P, uv, basis, T, w, W, dd, sig2):
+def _prior_scale(P, T, w, sig):
+    """Variance of one ray-constraint row per unit weight, averaged over the observed
+    frames: ``w_i d_i^2 sigma_i^2`` (``d_i`` the depth-like ``p3_i . [T_i; 1]``)."""
+    F = P.shape[0]
+    d = jnp.einsum("fj,fj->f", P[:, 2, :], jnp.concatenate([T, jnp.ones((F, 1), P.dtype)], 1))
+    obs = w > 0
+    v = jnp.where(obs, w * d**2 * jnp.broadcast_to(sig**2, (F,)), 0.0)
+    return jnp.sum(v) / jnp.maximum(jnp.sum(obs), 1)
+
+
+def _model_error_blocks(P, uv, basis, T, w, W, dd, sig2, pen3=None):
     """(F, 3, 3) model-error term of :func:`dct_covariance` at the fit ``T`` (F, 3)."""
     obs = w > 0
     Q = P[:, :2, :3] - uv[:, :, None] * P[:, 2:3, :3]  # normals of the planes through each ray
     C = camera_centres(P)
-    gain = _gain_bound(basis, W, dd, _frame_spread(Q, w)[1])
+    gain = _gain_bound(basis, W, dd, _frame_spread(Q, w)[1], pen3=pen3)
     y = _on_rays(T, Q, C, obs)
     m = y - T  # across the ray: the fit's measured miss
     v = y - C  # along the observed ray, to the fit's depth

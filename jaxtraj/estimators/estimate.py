@@ -75,7 +75,7 @@ from jaxtyping import Array, ArrayLike, Float, Int
 
 from .._batching import map_points, points_per_step
 from .._checks import is_concrete
-from ..depth import camera_centres, depth_uncertainty
+from ..depth import camera_centres, depth_uncertainty, with_ray_bound
 from ..solve import Status
 from ._common import as_float, check_loss, check_positive, normalise_cameras
 from ._dct_candidate import data_blocks, dct_fit
@@ -173,17 +173,6 @@ def _evidence(P, uv, times, w, sm, order):
     )
 
 
-def _with_ray_bound(cov, d, rel_sd):
-    """Raise the standard deviation along each ray ``d_i`` (F, 3) to at least
-    ``rel_sd |d_i|``: adds ``max(rel_sd^2 |d_i|^2 - u_i^T cov_i u_i, 0) u_i u_i^T``."""
-    n2 = jnp.sum(d * d, axis=-1)
-    tiny = jnp.finfo(d.dtype).tiny
-    u = d / jnp.sqrt(jnp.maximum(n2, tiny))[:, None]
-    along = jnp.einsum("fi,fij,fj->f", u, cov, u)
-    extra = jnp.maximum(rel_sd**2 * n2 - along, 0.0)
-    return cov + extra[:, None, None] * u[:, :, None] * u[:, None, :]
-
-
 def _one_order(P, C, uv, times, w, order, opts):
     sm = _smooth(
         P,
@@ -202,7 +191,7 @@ def _one_order(P, C, uv, times, w, order, opts):
     x = sm.points
     kappa = depth_uncertainty(x, C, times, order)
     d = x - C
-    cov = _with_ray_bound(sm.cov, d, 0.5 * kappa)
+    cov = with_ray_bound(sm.cov, d, 0.5 * kappa)
     mse = jnp.mean(jnp.trace(cov, axis1=-2, axis2=-1))
     return sm, kappa, cov, jnp.sqrt(mse), _evidence(P, uv, times, w, sm, order)
 
@@ -239,7 +228,7 @@ def _estimate_one(P, C, uv, times, w, orders, dct_ks, tau, opts):
             ok_k = determined & jnp.isfinite(neg2) & jnp.all(jnp.isfinite(x))
             score.append(jnp.where(ok_k, neg2, jnp.inf)[None])
             points.append(x)
-            cov.append(_with_ray_bound(c, x - C, 0.5 * kappa_det))
+            cov.append(with_ray_bound(c, x - C, 0.5 * kappa_det))
             posterior.append(c)
             order.append(0)
             size.append(k)

@@ -51,6 +51,7 @@ from .._batching import map_points, points_per_step
 from .._checks import check_finite, check_shape, check_tracks
 from .._spd import top_eigenvalue
 from ..basis import DCTBasis
+from ..depth import camera_centres, depth_uncertainty, with_ray_bound
 from ..solve import (
     MAX_DEPTH_UNCERTAINTY,
     MAX_RELATIVE_ERROR,
@@ -66,12 +67,14 @@ from ..solve import (
     reconstruct,
 )
 from ._depth import flag_undetermined_depth
+from .covariance import ReconstructionCovariance, dct_covariance
 from .select_k import check_rule
 
 __all__ = [
     "PenaltyChoice",
     "reconstruct_regularised",
     "reconstruct_regularised_points",
+    "regularised_covariance",
     "roughness_penalty",
     "select_penalty_cv",
 ]
@@ -225,6 +228,50 @@ def reconstruct_regularised(
     pen = lam * roughness_penalty(basis, order)
     res = reconstruct(P, uv, basis(jnp.asarray(times)), weights, penalty=pen)
     return flag_undetermined_depth(res, P, times, order, max_rms_px=max_rms_px), basis, choice
+
+
+def regularised_covariance(
+    P: Float[ArrayLike, "F 3 4"],
+    uv: Float[ArrayLike, "F 2"],
+    times: Float[ArrayLike, " F"],
+    basis: DCTBasis,
+    coeffs: Float[ArrayLike, "k 3"],
+    lam: Float[ArrayLike, ""],
+    weights: Float[ArrayLike, " F"] | None = None,
+    *,
+    order: int = 2,
+    pixel_sigma: float | Float[ArrayLike, " F"] = 1.0,
+    pose_cov: Float[ArrayLike, "F 6 6"] | None = None,
+) -> ReconstructionCovariance:
+    """Covariance of a regularised DCT fit (:func:`reconstruct_regularised`: its result's
+    ``coeffs``, its ``basis`` and the weight ``lam``, e.g. ``choice.lam``).
+
+    Three parts. The penalty read as a prior on the coefficients
+    (:func:`~jaxtraj.estimators.dct_covariance` with ``penalty``: the posterior form, which
+    holds the penalty's spread as well as the noise's); the model-error term of
+    :func:`~jaxtraj.estimators.dct_covariance`, which sees what the fit misses across the
+    rays; and, along the rays, where the pixels see nothing and the penalty sets the depth,
+    a standard deviation of at least ``kappa |x - c| / 2`` (``kappa``: the depth
+    uncertainty of the penalty's ``order``, :func:`jaxtraj.depth.depth_uncertainty`, the
+    quantity that flags the fit; :func:`jaxtraj.depth.with_ray_bound`), as
+    :func:`jaxtraj.estimate_points` does. Without the last part a status-OK fit on a limb-like
+    point under a 20 deg/frame orbit was 36.7 mm off with a reported 19 mm (posterior) or
+    2.6 mm (noise alone); with it, 0.36 of the reported standard deviation.
+
+    jit- and vmap-compatible (``order`` static).
+    """
+    t = jnp.asarray(times)
+    rows = basis(t)
+    pen = jnp.asarray(lam, rows.dtype) * roughness_penalty(basis, order)
+    cov = dct_covariance(
+        P, uv, rows, coeffs, weights, pixel_sigma=pixel_sigma, pose_cov=pose_cov, penalty=pen
+    )
+    x = rows @ jnp.asarray(coeffs, rows.dtype)
+    C = camera_centres(jnp.asarray(P, rows.dtype))
+    kappa = depth_uncertainty(x, C, t.astype(rows.dtype), order)
+    return ReconstructionCovariance(
+        coeffs=cov.coeffs, points=with_ray_bound(cov.points, x - C, 0.5 * kappa)
+    )
 
 
 #: tracks per step of the cross-validation loop on a CPU and on an accelerator: under one
