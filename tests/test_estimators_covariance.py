@@ -31,51 +31,42 @@ def _coeffs(s, uv):
 
 
 def test_equals_linearised_solve(scene):
+    """Without a penalty: the linearised noise spread of the solve (its Jacobian with
+    respect to the pixels). With a penalty ``pen``: that of the penalised solve plus
+    ``s^2 N^-1 pen N^-1`` (``N`` with the penalty, ``s^2`` the mean ``w d^2 sigma^2`` of a
+    ray-constraint row; the posterior form), computed here densely. A zero penalty is the
+    unpenalised covariance."""
     s = scene
-    c = _coeffs(s, s["uv"])
-    cov = dct_covariance(s["P"], s["uv"], s["basis"], c, pixel_sigma=0.5, model_error=False)
-    J = jax.jit(jax.jacfwd(lambda u: jt.reconstruct(s["P"], u, s["basis"]).coeffs.reshape(-1)))(
-        jnp.asarray(s["uv"])
-    ).reshape(3 * K, -1)
-    ref = 0.25 * J @ J.T
-    np.testing.assert_allclose(
-        np.asarray(cov.coeffs), np.asarray(ref), atol=1e-12 * np.abs(ref).max() * 1e3
+    P, uv, B = s["P"], jnp.asarray(s["uv"]), s["basis"]
+    solve = jax.jit(lambda u, pen: jt.reconstruct(P, u, B, penalty=pen).coeffs)
+    jac = jax.jit(jax.jacfwd(lambda u, pen: solve(u, pen).reshape(-1)))
+    cov_of = jax.jit(
+        lambda c, pen: dct_covariance(P, uv, B, c, pixel_sigma=0.5, model_error=False, penalty=pen)
     )
-    pts = np.asarray(points_covariance(s["basis"], cov.coeffs))
-    Phi = np.kron(s["basis"], np.eye(3))
-    dense = Phi @ np.asarray(cov.coeffs) @ Phi.T
-    np.testing.assert_allclose(pts[7], dense[21:24, 21:24], rtol=1e-10)
-    np.testing.assert_allclose(np.asarray(cov.std), np.sqrt(np.diagonal(pts, axis1=1, axis2=2)))
-
-
-def test_penalty_gives_the_posterior_form(scene):
-    """With a penalty ``pen`` the coefficients' covariance is the penalised solve's
-    linearised noise spread plus ``s^2 N^-1 pen N^-1`` (``N`` with the penalty, ``s^2`` the
-    mean ``w d^2 sigma^2`` of a ray-constraint row), computed here densely."""
-    s = scene
+    zero = np.zeros(K)
     pen = 2e3 * np.arange(1, K + 1, dtype=float) ** 4  # the prior term: 26 % of the trace
-    c = jt.reconstruct(s["P"], s["uv"], s["basis"], penalty=pen).coeffs
-    kw = {"pixel_sigma": 0.5, "model_error": False}
-    cov = dct_covariance(s["P"], s["uv"], s["basis"], c, penalty=pen, **kw)
-    J = jax.jit(
-        jax.jacfwd(lambda u: jt.reconstruct(s["P"], u, s["basis"], penalty=pen).coeffs.reshape(-1))
-    )(jnp.asarray(s["uv"])).reshape(3 * K, -1)
-    N, _ = jt.normal_equations(s["P"], s["uv"], s["basis"])
-    Ninv = np.linalg.inv(np.asarray(N) + np.diag(np.repeat(pen, 3)))
-    T = s["basis"] @ np.asarray(c)
-    d = np.einsum("fj,fj->f", s["P"][:, 2, :], np.hstack([T, np.ones((F, 1))]))
-    ref = 0.25 * J @ J.T + np.mean(0.25 * d**2) * Ninv @ np.diag(np.repeat(pen, 3)) @ Ninv
+    N, _ = jt.normal_equations(P, uv, B)
+    for p in (zero, pen):
+        c = solve(uv, p)
+        cov = cov_of(c, p)
+        J = np.asarray(jac(uv, p)).reshape(3 * K, -1)
+        Ninv = np.linalg.inv(np.asarray(N) + np.diag(np.repeat(p, 3)))
+        d = np.einsum("fj,fj->f", P[:, 2, :], np.hstack([B @ np.asarray(c), np.ones((F, 1))]))
+        ref = 0.25 * J @ J.T + np.mean(0.25 * d**2) * Ninv @ np.diag(np.repeat(p, 3)) @ Ninv
+        np.testing.assert_allclose(
+            np.asarray(cov.coeffs), ref, rtol=1e-7, atol=1e-9 * np.abs(ref).max()
+        )
+    plain = dct_covariance(P, uv, B, solve(uv, zero), pixel_sigma=0.5, model_error=False)
     np.testing.assert_allclose(
-        np.asarray(cov.coeffs), ref, rtol=1e-7, atol=1e-9 * np.abs(ref).max()
+        np.asarray(cov_of(solve(uv, zero), zero).coeffs), np.asarray(plain.coeffs), rtol=1e-9
     )
-    # a zero penalty is the unpenalised covariance
-    zero = dct_covariance(
-        s["P"], s["uv"], s["basis"], _coeffs(s, s["uv"]), penalty=np.zeros(K), **kw
-    )
-    plain = dct_covariance(s["P"], s["uv"], s["basis"], _coeffs(s, s["uv"]), **kw)
-    np.testing.assert_allclose(np.asarray(zero.coeffs), np.asarray(plain.coeffs), rtol=1e-9)
+    pts = np.asarray(points_covariance(B, plain.coeffs))
+    Phi = np.kron(B, np.eye(3))
+    dense = Phi @ np.asarray(plain.coeffs) @ Phi.T
+    np.testing.assert_allclose(pts[7], dense[21:24, 21:24], rtol=1e-10)
+    np.testing.assert_allclose(np.asarray(plain.std), np.sqrt(np.diagonal(pts, axis1=1, axis2=2)))
     with pytest.raises(ValueError, match="penalty"):
-        dct_covariance(s["P"], s["uv"], s["basis"], c, penalty=np.ones(K + 1))
+        dct_covariance(P, uv, B, c, penalty=np.ones(K + 1))
 
 
 def test_matches_monte_carlo_pixel_noise(scene, rng):
