@@ -22,7 +22,9 @@ model (a truncated basis) or has collapsed towards the camera centres, which sat
 every ray constraint exactly; moving it onto the rays keeps its depths and discards the
 part the pixels do not support, so that ``kappa`` then judges the depths alone. The
 solver (:mod:`jaxtraj.solve`) flags a fit whose on-ray ``kappa`` exceeds its
-``max_depth_uncertainty``.
+``max_depth_uncertainty``. :func:`with_ray_bound` puts the answer into a covariance: the
+standard deviation along each ray becomes at least ``kappa / 2`` of the distance
+(``estimate_points``, ``regularised_covariance``).
 
 Pure JAX, no LAPACK call; one trajectory per call (vmap for more).
 """

@@ -1,4 +1,5 @@
-"""First-order uncertainty of a DCT reconstruction (pixel and camera-pose noise).
+"""Uncertainty of a DCT reconstruction: first order in the pixel and camera-pose noise,
+plus the basis's model error (:func:`dct_covariance`).
 
 The linear solve of :func:`jaxtraj.reconstruct` is ``g(beta, uv, P) = 0`` with
 ``g = sum_i w_i phi_i (x) Q_i^T (q_i - Q_i T_i)``. Differentiating at the solution gives
@@ -89,7 +90,8 @@ def dct_covariance(
     model_error: bool = True,
     penalty: Float[ArrayLike, " k"] | None = None,
 ) -> ReconstructionCovariance:
-    """First-order covariance of :func:`jaxtraj.reconstruct`'s coefficients and points.
+    """Covariance of :func:`jaxtraj.reconstruct`'s coefficients and points: first-order
+    noise terms and, in ``points``, the basis's model error.
 
     The first-order terms cover the pixel (and pose) noise only. A basis too small for the
     motion leaves a model error that no noise level explains; with ``model_error`` the
