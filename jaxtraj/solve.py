@@ -421,11 +421,16 @@ def _ray_checks(P, points, Q, observed, gain, centres=None):
     C = camera_centres(P) if centres is None else centres
     y = _on_rays(points, Q, C, observed)
     kappa = depth_uncertainty(y, C, jnp.arange(points.shape[0], dtype=dtype), 2)
-    tiny = jnp.finfo(dtype).tiny
-    dist = jnp.maximum(jnp.linalg.norm(points - C, axis=1), tiny)
-    miss2 = jnp.sum((points - y) ** 2, axis=1) / dist**2  # sine^2 of the angle off the ray
+    return kappa, gain * jnp.sqrt(_angular_miss2(points, y, C, observed))
+
+
+def _angular_miss2(points, y, C, observed):
+    """Mean over the observed frames of the squared sine of the angle between each fitted
+    point and the same point moved onto its ray (``y``), seen from the camera ``C``."""
+    dist = jnp.maximum(jnp.linalg.norm(points - C, axis=1), jnp.finfo(points.dtype).tiny)
+    miss2 = jnp.sum((points - y) ** 2, axis=1) / dist**2
     n = jnp.maximum(jnp.sum(observed), 1)
-    return kappa, gain * jnp.sqrt(jnp.sum(jnp.where(observed, miss2, 0.0)) / n)
+    return jnp.sum(jnp.where(observed, miss2, 0.0)) / n
 
 
 def _status(finite, P, n_obs, k, penalised, degenerate):

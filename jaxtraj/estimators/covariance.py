@@ -27,7 +27,15 @@ from jaxtyping import Array, ArrayLike, Float
 
 from .._checks import check_shape
 from ..depth import _on_rays, camera_centres
-from ..solve import _factorise, _frame_spread, _gain_bound, _kron_sum, normal_equations
+from ..solve import (
+    _angular_miss2,
+    _factorise,
+    _frame_spread,
+    _gain_bound,
+    _kron_sum,
+    _reprojection_rms,
+    normal_equations,
+)
 from ._common import as_float, validate_track
 
 __all__ = ["ReconstructionCovariance", "dct_covariance", "points_covariance"]
@@ -197,10 +205,9 @@ def _model_error_blocks(P, uv, basis, T, w, W, dd, sig2, pen3=None):
     y = _on_rays(T, Q, C, obs)
     m = y - T  # across the ray: the fit's measured miss
     v = y - C  # along the observed ray, to the fit's depth
-    dist = jnp.maximum(jnp.linalg.norm(T - C, axis=1), jnp.finfo(T.dtype).tiny)
     n = jnp.maximum(jnp.sum(obs), 1)
-    angle2 = jnp.sum(jnp.where(obs, jnp.sum(m * m, axis=1) / dist**2, 0.0)) / n
-    rms2 = jnp.sum(jnp.where(obs, jnp.sum((_project(P, T) - uv) ** 2, axis=1), 0.0)) / n
+    angle2 = _angular_miss2(T, y, C, obs)  # relative_error = gain sqrt(angle2)
+    rms2 = _reprojection_rms(P, uv, T, obs) ** 2
     noise2 = 2.0 * jnp.sum(jnp.where(obs, sig2, 0.0)) / n  # two pixel coordinates
     excess = jnp.clip(1.0 - noise2 / jnp.maximum(rms2, jnp.finfo(T.dtype).tiny), 0.0)
     along = (gain**2 * angle2) * v[:, :, None] * v[:, None, :]  # (rel |v|)^2 along the ray
@@ -226,11 +233,6 @@ def _ray_point_jacobian(P_i, uv_i, v_i):
         return dist * jnp.sign(jax.lax.stop_gradient(d @ v_i)) * d
 
     return jax.jacfwd(point)(uv_i)
-
-
-def _project(P, X):
-    h = jnp.einsum("fij,fj->fi", P[:, :, :3], X) + P[:, :, 3]
-    return h[:, :2] / h[:, 2:3]
 
 
 def _pixel_blocks(P, uv, T, w, sig2):
