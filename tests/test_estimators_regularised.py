@@ -305,3 +305,7 @@ def test_regularised_covariance_covers_the_penalty_bias_along_the_rays():
             for i in range(2):
                 one = np.asarray(cov_of(P, uv2[i], t, coeffs[i]))
                 np.testing.assert_allclose(np.asarray(batched[i]), one, rtol=1e-8)
+            basis = jt.DCTBasis.from_times(t, 60)
+            for bad in (-1.0, np.nan, np.inf):
+                with pytest.raises(ValueError, match="lam"):
+                    regularised_covariance(P, uv, t, basis, res.coeffs, bad)

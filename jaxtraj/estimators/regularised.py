@@ -48,7 +48,7 @@ from jax.scipy.linalg import solve_triangular
 from jaxtyping import Array, ArrayLike, Float, Int
 
 from .._batching import map_points, points_per_step
-from .._checks import check_finite, check_shape, check_tracks
+from .._checks import check_finite, check_shape, check_tracks, is_concrete
 from .._spd import top_eigenvalue
 from ..basis import DCTBasis
 from ..depth import camera_centres, depth_uncertainty, with_ray_bound
@@ -258,8 +258,11 @@ def regularised_covariance(
     point under a 20 deg/frame orbit was 36.7 mm off with a reported 19 mm (posterior) or
     2.6 mm (noise alone); with it, 0.36 of the reported standard deviation.
 
-    jit- and vmap-compatible (``order`` static).
+    jit- and vmap-compatible (``order`` static). A negative or non-finite ``lam`` raises
+    (when concrete).
     """
+    if is_concrete(lam) and not np.all(np.isfinite(lam) & (np.asarray(lam) >= 0)):
+        raise ValueError(f"lam: expected a finite penalty weight >= 0, got {lam!r}")
     t = jnp.asarray(times)
     rows = basis(t)
     pen = jnp.asarray(lam, rows.dtype) * roughness_penalty(basis, order)
