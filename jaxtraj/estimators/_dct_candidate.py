@@ -63,10 +63,7 @@ def _posterior(Hb, gb, c, prec, mean):
     of their precision ``L L^T`` (no LAPACK call: batched over tracks and scales, LAPACK's
     Cholesky deadlocked on 2 cores with jaxlib 0.10, see :mod:`jaxtraj._spd`)."""
     b = gb + prec * mean
-    # the rows' loop, not unrolled: estimate_points holds 4 sizes x 9 of these factors,
-    # and unrolled they made half its compile time (first call at F = 40, 6 tracks:
-    # 32-35 -> 15-16 s; warm, F = 150, 256 tracks: 2.46 -> 2.44-2.59 ms per point)
-    W = inverse_cholesky(Hb + jnp.diag(prec), unroll=False)
+    W = inverse_cholesky(Hb + jnp.diag(prec))
     y = matvec(W, b)
     beta = vecmat(y, W)
     neg2 = (
