@@ -17,6 +17,13 @@ decades (as the smoother's noise density) on the data linearised at the best smo
 estimate; each size's likelihood is then evaluated on the data linearised at its own
 estimate (one relinearisation), so that no model is judged at another's trajectory.
 
+The evidence is trusted only where its factor is: a candidate whose precision ``N`` has a
+pivot below ``sqrt(eps)`` of its diagonal entry (``L_ii^2 < sqrt(eps) N_ii``: half the
+digits lost, or a pivot clamped by :func:`jaxtraj._spd.inverse_cholesky`) has no evidence
+(``inf``). Such an ``N`` arises where the data are linearised at a trajectory passing
+close to a camera (a 300 m wrong fit once won on ``log det N`` of clamped pivots, status
+OK). The scale grid skips such scales too.
+
 Only the choice between models is made here; whether the depth is determined is decided
 by the smoothness priors' ``kappa`` (:mod:`._depth`): a DCT fit is admissible only where
 some smoothness order is (the pixels are blind along the rays for every model alike).
@@ -59,11 +66,13 @@ def _coefficient_blocks(theta, H, g):
 
 
 def _posterior(Hb, gb, c, prec, mean):
-    """-2 log evidence, coefficients (3k,) and ``W = L^-1``, the inverse Cholesky factor
-    of their precision ``L L^T`` (no LAPACK call: batched over tracks and scales, LAPACK's
-    Cholesky deadlocked on 2 cores with jaxlib 0.10, see :mod:`jaxtraj._spd`)."""
+    """-2 log evidence (``inf`` where the factor is not trusted, see the module notes),
+    coefficients (3k,) and ``W = L^-1``, the inverse Cholesky factor of their precision
+    ``L L^T`` (no LAPACK call: batched over tracks and scales, LAPACK's Cholesky
+    deadlocked on 2 cores with jaxlib 0.10, see :mod:`jaxtraj._spd`)."""
     b = gb + prec * mean
-    W = inverse_cholesky(Hb + jnp.diag(prec))
+    N = Hb + jnp.diag(prec)
+    W = inverse_cholesky(N)
     y = matvec(W, b)
     beta = vecmat(y, W)
     neg2 = (
@@ -73,7 +82,15 @@ def _posterior(Hb, gb, c, prec, mean):
         - 2.0 * jnp.sum(jnp.log(jnp.diagonal(W)))
         - jnp.sum(jnp.log(prec))
     )
-    return neg2, beta, W
+    return jnp.where(_pivots_healthy(N, W), neg2, jnp.inf), beta, W
+
+
+def _pivots_healthy(N, W):
+    """Whether every pivot ``L_ii^2 = 1 / W_ii^2`` of ``N = L L^T`` keeps at least half
+    the digits of its diagonal entry: ``L_ii^2 >= sqrt(eps) N_ii``."""
+    floor = jnp.sqrt(jnp.finfo(N.dtype).eps)
+    d = jnp.diagonal(W)
+    return jnp.all(1.0 >= floor * jnp.diagonal(N) * d * d)
 
 
 def _best_scale(theta, Hb, gb, c, x_lin, dc_sd):
