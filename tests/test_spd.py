@@ -1,5 +1,6 @@
 """The LAPACK-free SPD algebra (jaxtraj._spd): the inverse Cholesky factor, unrolled up to
-UNROLL_MAX rows and by blocks beyond, against NumPy; singular input; vmap, jit, and its
+UNROLL_MAX rows (or as a loop over the rows, ``unroll=False``) and by blocks beyond, against
+NumPy; singular input; vmap, jit, and its
 analytic derivative against differences."""
 
 from __future__ import annotations
@@ -17,11 +18,12 @@ def _spd(rng, n, batch=()):
     return X @ np.swapaxes(X, -1, -2) / n + 1e-3 * np.eye(n)
 
 
+@pytest.mark.parametrize("unroll", [True, False])
 @pytest.mark.parametrize("n", [1, 7, UNROLL_MAX, UNROLL_MAX + 1, 2 * UNROLL_MAX + 5])
-def test_inverse_cholesky_equals_the_inverse_of_numpys_factor(n):
+def test_inverse_cholesky_equals_the_inverse_of_numpys_factor(n, unroll):
     rng = np.random.default_rng(n)
     A = _spd(rng, n, (3,))
-    W = np.asarray(jax.jit(jax.vmap(inverse_cholesky))(jnp.asarray(A)))
+    W = np.asarray(jax.jit(jax.vmap(lambda a: inverse_cholesky(a, unroll)))(jnp.asarray(A)))
     L = np.linalg.cholesky(A)
     np.testing.assert_allclose(W, np.linalg.inv(L), rtol=0, atol=1e-10 * np.abs(W).max())
     assert np.all(np.triu(W, 1) == 0.0)
@@ -39,10 +41,10 @@ def test_singular_input_gives_a_finite_factor(n):
     assert np.abs(W).max() > 1e6  # the clamped pivots show up as huge entries
 
 
-@pytest.mark.parametrize("n", [7, UNROLL_MAX + 4])
-def test_gradient_of_the_factor_matches_differences(n):
-    # the derivative is the analytic rule of inverse_cholesky's custom JVP: both the
-    # unrolled (n <= UNROLL_MAX) and the blocked factor, in reverse and forward mode
+@pytest.mark.parametrize(("n", "unroll"), [(7, True), (7, False), (UNROLL_MAX + 4, True)])
+def test_gradient_of_the_factor_matches_differences(n, unroll):
+    # the derivative is the analytic rule of inverse_cholesky's custom JVP: the unrolled
+    # and the looped (n <= UNROLL_MAX) and the blocked factor, in reverse and forward mode
     rng = np.random.default_rng(2)
     A = jnp.asarray(_spd(rng, n))
     E = jnp.asarray(rng.normal(size=(n, n)))
@@ -50,7 +52,7 @@ def test_gradient_of_the_factor_matches_differences(n):
 
     @jax.jit
     def f(t):
-        W = inverse_cholesky(A + t * E)
+        W = inverse_cholesky(A + t * E, unroll=unroll)
         return jnp.sum(W[-1] ** 2)  # the last row crosses every block
 
     g = jax.jit(jax.grad(f))(0.0)
