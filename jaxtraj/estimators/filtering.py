@@ -56,7 +56,14 @@ from .._checks import check_shape
 from .._linalg import cholesky_small, solve_spd_small
 from ..solve import Status
 from ._common import as_float, check_positive, linearise, normalise_cameras, validate_track
-from .smoothness import Smoothed, _q_unit, _transition, _validate_batch, _validate_start
+from .smoothness import (
+    Smoothed,
+    _q_scale,
+    _q_unit,
+    _transition,
+    _validate_batch,
+    _validate_start,
+)
 
 __all__ = ["filter_points", "filter_trajectory"]
 
@@ -68,8 +75,7 @@ def _process(dt, order: int, q):
     states flattened position first, for noise density ``q``."""
     A, _ = _transition(dt, order)
     Qbar, _ = _q_unit(order)
-    j = np.arange(order)
-    d = dt[..., None] ** (order - 0.5 - j)
+    d = _q_scale(dt, order)
     Qs = q * jnp.asarray(Qbar, dt.dtype) * d[..., :, None] * d[..., None, :]
     eye3 = jnp.eye(3, dtype=dt.dtype)
     kron = jax.vmap(lambda a: jnp.kron(a, eye3))

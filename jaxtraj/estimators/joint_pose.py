@@ -26,7 +26,7 @@ from jaxtyping import Array, ArrayLike, Bool, Float
 from .._checks import check_shape
 from ..rigid import fit_rigid
 from ..solve import reconstruct
-from ._common import as_float, check_loss, rho
+from ._common import as_float, cast_floats, check_loss, least_squares_dtype, rho
 
 __all__ = ["RigidTrajectory", "fit_rigid_trajectory", "kabsch_per_frame"]
 
@@ -125,7 +125,10 @@ def fit_rigid_trajectory(
         R0, t0 = kabsch_per_frame(P, uv, model_points, basis, w)
     else:
         R0, t0 = (jnp.asarray(a, P.dtype) for a in init)
-    return _fit(P, uv, model_points, basis, w, R0, t0, loss, loss_scale, max_steps)
+    args = cast_floats(  # float32 under x64: solved in float64 (least_squares_dtype)
+        (P, uv, model_points, basis, w, R0, t0), least_squares_dtype(P.dtype)
+    )
+    return cast_floats(_fit(*args, loss, loss_scale, max_steps), P.dtype)
 
 
 @eqx.filter_jit  # one compiled program per shape and loss (run eagerly: seconds per call)

@@ -26,7 +26,16 @@ from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
 from .._checks import check_shape
 from ..solve import Status
-from ._common import as_float, check_loss, check_positive, homogeneous, rho, validate_track
+from ._common import (
+    as_float,
+    cast_floats,
+    check_loss,
+    check_positive,
+    homogeneous,
+    least_squares_dtype,
+    rho,
+    validate_track,
+)
 
 __all__ = ["Refined", "refine_dct", "refine_points"]
 
@@ -118,6 +127,10 @@ def refine_dct(
     if not isinstance(max_steps, int) or max_steps < 1:
         raise ValueError(f"max_steps: expected a positive int, got {max_steps!r}")
     P, uv, basis, coeffs, weights = as_float(P, uv, basis, coeffs, weights)
+    out_dtype = P.dtype
+    P, uv, basis, coeffs, weights = cast_floats(  # float32 under x64: solved in float64
+        (P, uv, basis, coeffs, weights), least_squares_dtype(out_dtype)
+    )
     w = jnp.ones(F, P.dtype) if weights is None else weights
     obs = w > 0
     uv = jnp.where(obs[:, None], uv, 0.0)
@@ -144,7 +157,7 @@ def refine_dct(
         sq = jnp.where(obs, jnp.sum(e * e, axis=1), 0.0)
         return jnp.sqrt(jnp.sum(sq) / jnp.maximum(jnp.sum(obs), 1))
 
-    return Refined(
+    refined = Refined(
         coeffs=beta,
         points=basis @ beta,
         rms_px=rms(beta),
@@ -155,6 +168,7 @@ def refine_dct(
         converged=sol.result == optx.RESULTS.successful,
         kept_start=~better,
     )
+    return cast_floats(refined, out_dtype)
 
 
 @eqx.filter_jit

@@ -147,9 +147,16 @@ def _transition(dt, order: int):
     dtp = dt[..., None, None] ** np.maximum(powers, 0)
     A = jnp.where(powers >= 0, dtp / fact, 0.0)
     _, Qinv1 = _q_unit(order)
-    d = dt[..., None] ** (m - 0.5 - j)  # Qbar(dt) = diag(d) Qbar(1) diag(d)
+    d = _q_scale(dt, order)
     Qinv = jnp.asarray(Qinv1, dt.dtype) / (d[..., :, None] * d[..., None, :])
     return A, Qinv
+
+
+def _q_scale(dt, order: int):
+    """``d`` (.., m) with ``Qbar(dt) = diag(d) Qbar(1) diag(d)``: ``dt^(m - 1/2 - j)``, in
+    the dtype of ``dt`` (float32 times stay float32 with x64 enabled)."""
+    j = np.arange(order)
+    return dt[..., None] ** jnp.asarray(order - 0.5 - j, dt.dtype)
 
 
 def _assemble(H, g, A, Qinv, inv_q, order, start=None):
