@@ -65,6 +65,9 @@ def test_estimate_points_and_the_filter(scene):
     assert _floats(f) == {"float32"}, _floats(f)
     err = np.linalg.norm(np.asarray(f.points) - X, axis=-1).mean(axis=1)
     assert np.all(err < 0.01), err
+    mean, cov = es.predict(jax.tree.map(lambda a: a[0], f), 0.1)  # 0.1 s ahead
+    assert mean.dtype == cov.dtype == jnp.float32
+    assert np.all(np.isfinite(np.asarray(cov)))
 
 
 def test_refinement_and_the_rigid_fit(scene):

@@ -671,8 +671,7 @@ def predict(result: Smoothed, horizon: float) -> tuple[Float[Array, "m 3"], Floa
     h = jnp.asarray(horizon, result.states.dtype)
     A, _ = _transition(h[None], order)
     Qbar, _ = _q_unit(order)
-    j = np.arange(order)
-    d = h ** (order - 0.5 - j)
+    d = _q_scale(h, order)
     Qh = jnp.asarray(Qbar, h.dtype) * d[:, None] * d[None, :] * result.process_psd
     eye3 = jnp.eye(3, dtype=h.dtype)
     Ak = jnp.kron(A[0], eye3)
