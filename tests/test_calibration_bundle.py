@@ -157,6 +157,14 @@ def test_jit_and_float32_and_errors():
     assert e32.dtype == np.float32
     np.testing.assert_allclose(np.asarray(e32), eager, atol=2e-3)  # projections of ~400 px
     w = np.ones(s.uv.shape[:2])
+    # float32 with x64 enabled: the Levenberg-Marquardt fit runs in float64 (its damping is
+    # float64; float32 failed there) and returns float32
+    f32 = (np.asarray(a, np.float32) for a in (s.uv, w, s.T_b_f, s.K, s.dist, s.T_x, s.T_b))
+    r32 = refine_hand_eye(BOARD, *f32)
+    assert r32.K.dtype == r32.T_x.dtype == r32.covariance.dtype == np.float32
+    r64 = refine_hand_eye(BOARD, s.uv, w, s.T_b_f, s.K, s.dist, s.T_x, s.T_b)
+    assert np.abs(np.asarray(r32.T_x) - np.asarray(r64.T_x)).max() < 1e-5
+    assert np.abs(np.asarray(r32.K) - np.asarray(r64.K)).max() < 1e-2  # [px]
     with pytest.raises(ValueError, match=r"T_b_f: expected robot poses .* \(12, 4, 4\)"):
         refine_hand_eye(BOARD, s.uv, w, s.T_b_f[:3], s.K, s.dist, s.T_x, s.T_b)
     with pytest.raises(ValueError, match="solver"):

@@ -35,6 +35,7 @@ import numpy as np
 import optimistix as optx
 from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
+from .._precision import cast_floats, least_squares_dtype
 from ..camera import distort
 
 __all__ = ["PARAMETER_NAMES", "HandEyeBundle", "bundle_residuals", "refine_hand_eye"]
@@ -342,7 +343,9 @@ def refine_hand_eye(
     uv = jnp.asarray(uv)
     if not jnp.issubdtype(uv.dtype, jnp.floating):
         uv = uv.astype(jnp.result_type(float))
-    dt = uv.dtype
+    out_dtype = uv.dtype
+    dt = least_squares_dtype(out_dtype)  # float32 under x64: solved in float64
+    uv = uv.astype(dt)
     start = tuple(jnp.asarray(a, dt) for a in (K, dist, T_x, T_b))
     sigmas = tuple(
         jnp.asarray(v, dt) for v in (pixel_sigma, robot_position_sigma, robot_rotation_sigma)
@@ -373,4 +376,4 @@ def refine_hand_eye(
             out,
             (out.residuals[:V], out.robot_corrections[:V]),
         )
-    return out
+    return cast_floats(out, out_dtype)

@@ -3,7 +3,6 @@ and host-side validation with messages that name the argument."""
 
 from __future__ import annotations
 
-import jax
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
@@ -87,21 +86,6 @@ def as_float(P, *xs):
     P = jnp.asarray(P)
     dtype = jnp.result_type(P.dtype, jnp.float32)
     return (P.astype(dtype), *(None if x is None else jnp.asarray(x, dtype) for x in xs))
-
-
-def least_squares_dtype(dtype):
-    """The dtype in which optimistix's Levenberg-Marquardt runs for inputs of ``dtype``.
-    With x64 enabled its damping factor is float64, and float32 residuals then fail
-    (lineax: "Vector and operator structures do not match"); such inputs are solved in
-    float64 and the results cast back (:func:`cast_floats`)."""
-    return jnp.promote_types(dtype, jnp.float64) if jax.config.jax_enable_x64 else dtype
-
-
-def cast_floats(tree, dtype):
-    """Every floating-point array of ``tree`` cast to ``dtype`` (other leaves unchanged)."""
-    return jax.tree.map(
-        lambda a: a.astype(dtype) if jnp.issubdtype(a.dtype, jnp.floating) else a, tree
-    )
 
 
 def validate_track(P, uv, times=None, weights=None) -> None:

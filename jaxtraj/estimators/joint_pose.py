@@ -24,9 +24,10 @@ import optimistix as optx
 from jaxtyping import Array, ArrayLike, Bool, Float
 
 from .._checks import check_shape
+from .._precision import cast_floats, least_squares_dtype
 from ..rigid import fit_rigid
 from ..solve import reconstruct
-from ._common import as_float, cast_floats, check_loss, least_squares_dtype, rho
+from ._common import as_float, check_loss, rho
 
 __all__ = ["RigidTrajectory", "fit_rigid_trajectory", "kabsch_per_frame"]
 

@@ -25,17 +25,9 @@ import optimistix as optx
 from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
 from .._checks import check_shape
+from .._precision import cast_floats, least_squares_dtype
 from ..solve import Status
-from ._common import (
-    as_float,
-    cast_floats,
-    check_loss,
-    check_positive,
-    homogeneous,
-    least_squares_dtype,
-    rho,
-    validate_track,
-)
+from ._common import as_float, check_loss, check_positive, homogeneous, rho, validate_track
 
 __all__ = ["Refined", "refine_dct", "refine_points"]
 
