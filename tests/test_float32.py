@@ -1,6 +1,7 @@
-"""float32 inputs with x64 enabled (as in these tests): the estimators run, return float32
-and agree with their float64 results (a float64 constant once leaked into the smoothers'
-scans and optimistix's damping, and every call failed)."""
+"""float32 inputs with x64 enabled (as in these tests): the estimators run, return float32,
+and agree with the truth (estimate_points, the filter) or with their float64 results (the
+Levenberg-Marquardt fits). A float64 constant once leaked into the smoothers' scans, and
+optimistix's damping is float64: every one of these calls failed."""
 
 from __future__ import annotations
 
