@@ -3,6 +3,8 @@ accuracy against the plain DCT, the choice of the noise density, batching and er
 
 from __future__ import annotations
 
+import itertools
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -11,7 +13,13 @@ import pytest
 import jaxtraj as jt
 from jaxtraj.estimators import _blocktri as bt
 from jaxtraj.estimators import predict, select_process_psd, smooth_points, smooth_trajectory
-from jaxtraj.estimators.smoothness import _prior_cost, _q_unit, _transition
+from jaxtraj.estimators.smoothness import (
+    _ml_grid_search,
+    _prior_cost,
+    _q_unit,
+    _transition,
+    default_psd_grid,
+)
 from tests.test_estimators_scenes import dct_fit, project_np, rmse, robot_scene
 
 SMOOTH = jax.jit(
@@ -360,3 +368,40 @@ def test_bad_inputs(rng):
         smooth_trajectory(P, bad, t)
     with pytest.raises(ValueError, match="uv"):
         smooth_points(P, uv, t)
+
+
+def _search_reference(f, grid, rounds):
+    """The density search written plainly: the grid, then ``rounds`` times the two geometric
+    midpoints about the minimum (kept off the ends), going on with those five points."""
+    grid = np.asarray(grid, float)
+    crit = np.array([f(q) for q in grid])
+    for _ in range(rounds):
+        i = int(np.clip(np.argmin(np.where(np.isfinite(crit), crit, np.inf)), 1, grid.size - 2))
+        mid = np.sqrt(grid[[i - 1, i]] * grid[[i, i + 1]])
+        c_mid = [f(q) for q in mid]
+        grid = np.array([grid[i - 1], mid[0], grid[i], mid[1], grid[i + 1]])
+        crit = np.array([crit[i - 1], c_mid[0], crit[i], c_mid[1], crit[i + 1]])
+    return grid, crit
+
+
+@pytest.mark.parametrize("grid_size", [3, 5, 10])
+def test_density_search_in_one_loop_equals_the_plain_search(grid_size):
+    """The marginal-likelihood search evaluates the grid and its refinements in one loop
+    (one compiled copy of the evidence); it must visit the same densities as the plain
+    search, also with the minimum at either end of the grid and with non-finite values."""
+    grid = default_psd_grid(2)[:: max(1, 10 // grid_size)][:grid_size]
+    search = jax.jit(_ml_grid_search, static_argnums=(0, 2))
+    centres = (grid[0] / 10, grid[1] * 1.7, grid[grid_size // 2] * 0.6, grid[-1] * 10)
+    for centre, fail_top in itertools.product(centres, (False, True)):
+
+        def f(q, centre=centre, fail_top=fail_top):
+            v = (jnp.log(q) - np.log(centre)) ** 2
+            return jnp.where(fail_top & (q > grid[-1] * 0.99), jnp.nan, v)
+
+        for rounds in (0, 1, 2):
+            ref_q, ref_c = _search_reference(lambda q: float(f(q)), grid, rounds)
+            q, c = search(f, jnp.asarray(grid), rounds)
+            np.testing.assert_allclose(np.asarray(q), ref_q, rtol=1e-14)
+            np.testing.assert_allclose(np.asarray(c), ref_c, rtol=1e-12, atol=1e-14)
+    with pytest.raises(ValueError, match="at least 3 densities"):
+        _ml_grid_search(lambda q: q, jnp.asarray(grid[:2]), 1)

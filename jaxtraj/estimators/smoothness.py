@@ -182,6 +182,54 @@ def _assemble(H, g, A, Qinv, inv_q, order, start=None):
     return D, E, b
 
 
+def _refine_window(wq, wc, size):
+    """Index of the best of the first ``size`` points of a window (kept off its ends) and
+    the geometric midpoints on either side of it."""
+    i = jnp.argmin(jnp.where(jnp.isfinite(wc), wc, jnp.inf))
+    i = jnp.clip(i, 1, size - 2)
+    return i, jnp.sqrt(wq[i + jnp.array([-1, 0])] * wq[i + jnp.array([0, 1])])
+
+
+def _ml_grid_search(evidence, grid, rounds: int):
+    """``evidence`` on ``grid``, then ``rounds`` times at the two geometric midpoints next to
+    the minimum, going on with those five points; returns the last points and values.
+
+    Every evaluation runs in one loop, so the evidence is compiled once rather than once
+    for the grid and once per round (each copy of the block-tridiagonal evidence cost
+    about a second of compilation)."""
+    if rounds == 0:
+        return grid, jax.lax.map(evidence, grid)
+    G = grid.shape[0]
+    if G < 3:
+        raise ValueError(f"grid: a refined search needs at least 3 densities, got {G}")
+    W = max(G, 5)  # the window: the grid, then the five points about the minimum
+    wq = jnp.concatenate([grid, jnp.full(W - G, grid[-1])])
+    wc = jnp.full(W, jnp.inf, grid.dtype)
+
+    def body(j, carry):
+        wq, wc, size, c_first = carry
+        on_grid = j < G
+        second = ~on_grid & ((j - G) % 2 == 1)  # the second midpoint of a round
+        i, mid = _refine_window(wq, wc, size)
+        c = evidence(
+            jnp.where(on_grid, wq[jnp.minimum(j, W - 1)], jnp.where(second, mid[1], mid[0]))
+        )
+        wc = jnp.where(on_grid, wc.at[jnp.minimum(j, W - 1)].set(c), wc)
+        # after a round's second midpoint: go on with the five points about the minimum
+        new_q = jnp.stack([wq[i - 1], mid[0], wq[i], mid[1], wq[i + 1]])
+        new_c = jnp.stack([wc[i - 1], c_first, wc[i], c, wc[i + 1]])
+        pad_q, pad_c = jnp.full(W - 5, new_q[-1]), jnp.full(W - 5, jnp.inf, grid.dtype)
+        wq = jnp.where(second, jnp.concatenate([new_q, pad_q]), wq)
+        wc = jnp.where(second, jnp.concatenate([new_c, pad_c]), wc)
+        size = jnp.where(second, 5, size)
+        c_first = jnp.where(on_grid | second, c_first, c)
+        return wq, wc, size, c_first
+
+    carry = (wq, wc, jnp.asarray(G), jnp.zeros((), grid.dtype))
+    wq, wc, _, _ = jax.lax.fori_loop(0, G + 2 * rounds, body, carry)
+    return wq[:5], wc[:5]
+
+
 def _argmin_log(grid, values):
     """Minimiser of ``values`` over a log grid, refined by a parabola in ``log q``."""
     values = jnp.where(jnp.isfinite(values), values, jnp.inf)
@@ -485,18 +533,11 @@ def _smooth(
             # vmap here made every block-tridiagonal step a batch of batches (measured with
             # estimate_points, 256 points, F = 150: first call 33.4 -> 30.6 s, warm 2.74
             # -> 2.57 ms per point, means of two alternated runs; see the README)
-            crit = jax.lax.map(evidence, grid)
+            grid, crit = _ml_grid_search(evidence, grid, 0 if curve_only else refine_grid)
         else:
             crit = jax.vmap(lambda q: ubre(q, H, g, e, J, x[:, :3])[0])(grid)
         if curve_only:
             return crit
-        for _ in range(refine_grid if criterion == "ml" else 0):
-            i = jnp.argmin(jnp.where(jnp.isfinite(crit), crit, jnp.inf))
-            i = jnp.clip(i, 1, grid.shape[0] - 2)
-            mid = jnp.sqrt(grid[i + jnp.array([-1, 0])] * grid[i + jnp.array([0, 1])])
-            c_mid = jax.lax.map(evidence, mid)
-            grid = jnp.stack([grid[i - 1], mid[0], grid[i], mid[1], grid[i + 1]])
-            crit = jnp.stack([crit[i - 1], c_mid[0], crit[i], c_mid[1], crit[i + 1]])
         q = _argmin_log(grid, crit)
         # again from the nominal depth at the chosen q: the depths of the first solution
         # (q in the middle of the grid) can be far off where the camera moves slowly, and
