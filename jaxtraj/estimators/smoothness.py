@@ -207,26 +207,24 @@ def _ml_grid_search(evidence, grid, rounds: int):
     wc = jnp.full(W, jnp.inf, grid.dtype)
 
     def body(j, carry):
-        wq, wc, size, c_first = carry
+        wq, wc, c_first = carry
         on_grid = j < G
         second = ~on_grid & ((j - G) % 2 == 1)  # the second midpoint of a round
+        size = jnp.where(j < G + 2, G, 5)  # the window holds the grid until a round ends
         i, mid = _refine_window(wq, wc, size)
-        c = evidence(
-            jnp.where(on_grid, wq[jnp.minimum(j, W - 1)], jnp.where(second, mid[1], mid[0]))
-        )
-        wc = jnp.where(on_grid, wc.at[jnp.minimum(j, W - 1)].set(c), wc)
+        at = jnp.minimum(j, W - 1)  # the grid point of this step (while on the grid)
+        c = evidence(jnp.where(on_grid, wq[at], jnp.where(second, mid[1], mid[0])))
+        wc = jnp.where(on_grid, wc.at[at].set(c), wc)
         # after a round's second midpoint: go on with the five points about the minimum
         new_q = jnp.stack([wq[i - 1], mid[0], wq[i], mid[1], wq[i + 1]])
         new_c = jnp.stack([wc[i - 1], c_first, wc[i], c, wc[i + 1]])
         pad_q, pad_c = jnp.full(W - 5, new_q[-1]), jnp.full(W - 5, jnp.inf, grid.dtype)
         wq = jnp.where(second, jnp.concatenate([new_q, pad_q]), wq)
         wc = jnp.where(second, jnp.concatenate([new_c, pad_c]), wc)
-        size = jnp.where(second, 5, size)
         c_first = jnp.where(on_grid | second, c_first, c)
-        return wq, wc, size, c_first
+        return wq, wc, c_first
 
-    carry = (wq, wc, jnp.asarray(G), jnp.zeros((), grid.dtype))
-    wq, wc, _, _ = jax.lax.fori_loop(0, G + 2 * rounds, body, carry)
+    wq, wc, _ = jax.lax.fori_loop(0, G + 2 * rounds, body, (wq, wc, jnp.zeros((), grid.dtype)))
     return wq[:5], wc[:5]
 
 
