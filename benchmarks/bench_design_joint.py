@@ -4,9 +4,10 @@ Designs the KR 16-2's joint path for the simulated cell of ``jaxtraj design --ex
 (workpiece carried by a KR 60-3 along a smooth 3D curve) and reports: the design time
 with compilation (first call), a warm re-plan (the prediction moved by 5 mm, started
 from the design and its multipliers: with all starts, the design's shapes, and with the
-best start alone, whose first call compiles and whose second, moved by 10 mm, is the warm
-figure), convergence per start (largest violation, KKT
-stationarity), the expected mean error and the constraints on a grid 10x finer.
+best start alone, whose first call compiles and whose later calls, moved by 10 and 20 mm,
+are the warm figures, each with the first round's BFGS started from the identity and from
+the design's inverse Hessian), convergence and evaluations per start (largest violation,
+KKT stationarity), the expected mean error and the constraints on a grid 10x finer.
 
 With ``--compare``, designs the path once for each estimator (the paper's DCT with
 k = 12 and the order-2 smoothness prior of ``estimate_points``) and measures every path,
@@ -604,10 +605,17 @@ def main(argv: list[str] | None = None) -> int:
             f"{1000 * float(best.expected_error):.3f} mm"
         )
     # warm re-plan: the best design and its multipliers, from the last penalty on, with all
-    # starts (the design's shapes) and with the best one alone (the first call compiles)
-    for label, b, shifts in (
-        ("all starts", args.starts, (0.005,)),
-        ("one start", 1, (0.005, 0.01)),
+    # starts (the design's shapes) and with the best one alone (the first call compiles);
+    # the one-start re-plans with the BFGS started from the identity and from the design's
+    # inverse Hessian, alternated, each moved by 10 mm and then by 20 mm
+    print("per start: evaluations", np.asarray(designs.evaluations).tolist())
+    for label, b, shifts, warm_h in (
+        ("all starts", args.starts, (0.005,), True),
+        ("one start", 1, (0.005,), True),
+        ("one start, BFGS from the identity", 1, (0.01,), False),
+        ("one start, BFGS from the design's inverse Hessian", 1, (0.01,), True),
+        ("one start, BFGS from the identity", 1, (0.02,), False),
+        ("one start, BFGS from the design's inverse Hessian", 1, (0.02,), True),
     ):
         for shift in shifts:
             t0 = time.perf_counter()
@@ -619,6 +627,7 @@ def main(argv: list[str] | None = None) -> int:
                 res["basis"],
                 jnp.stack([best.theta] * b),
                 multipliers=jnp.stack([best.multipliers] * b),
+                inverse_hessian=jnp.stack([best.inverse_hessian] * b) if warm_h else None,
                 objective=spec.objective,
                 estimator=args.estimator,
                 layout=res["layout"],
@@ -632,7 +641,7 @@ def main(argv: list[str] | None = None) -> int:
                 f"design and its multipliers): {time.perf_counter() - t0:.2f} s, expected mean "
                 f"error {1000 * float(warm.expected_mean_error):.2f} mm, stationarity "
                 f"{float(warm.stationarity):.1e}, converged {bool(warm.converged)}, "
-                f"{int(warm.rounds)} round(s)",
+                f"{int(warm.rounds)} round(s), {int(warm.evaluations)} evaluations",
                 flush=True,
             )
     return 0

@@ -280,6 +280,7 @@ def write_design(out: str | Path, spec: CellSpec, result: dict, plots: bool = Tr
             "max_violation": np.asarray(designs.max_violation).tolist(),
             "stationarity": np.asarray(designs.stationarity).tolist(),
             "rounds": np.asarray(designs.rounds).tolist(),
+            "evaluations": np.asarray(designs.evaluations).tolist(),
             "expected_mean_error_m": np.asarray(designs.expected_mean_error).tolist(),
         },
         "fine_grid_violation": result["fine_violation"],

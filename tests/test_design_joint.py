@@ -205,7 +205,7 @@ def test_design_converges_and_holds_on_a_10x_finer_grid(scene, rng):
     # same re-plan without the multipliers (Intel Xeon, jax 0.10.2: design [3, 4] rounds,
     # re-plan 3 with the multipliers and 4 without; on the AMD EPYC of earlier runs the
     # re-plan took fewer rounds than the design)
-    warm2, _ = design_joint_path(
+    warm2, replanned = design_joint_path(
         model,
         cell,
         pred + 0.01,
@@ -217,6 +217,27 @@ def test_design_converges_and_holds_on_a_10x_finer_grid(scene, rng):
     )
     assert bool(warm2.converged)
     assert int(warm2.rounds) <= min(int(best.rounds), int(warm.rounds))
+    # the search counts its evaluations (at least one per round) and returns its inverse
+    # Hessian; the identity passed explicitly is the default, and the re-plan started from
+    # the design's inverse Hessian converges too
+    assert np.all(np.asarray(designs.evaluations) > np.asarray(designs.rounds))
+    n = int(np.prod(model.shape))
+    assert designs.inverse_hessian.shape == (2, n, n)
+    replan = (model, cell, pred + 0.01, samples + 0.01, basis, designs.theta)
+    eye = jnp.broadcast_to(jnp.eye(n), (2, n, n))
+    _, same = design_joint_path(
+        *replan, multipliers=designs.multipliers, inverse_hessian=eye, **kwargs
+    )
+    np.testing.assert_array_equal(np.asarray(same.theta), np.asarray(replanned.theta))
+    warm3, _ = design_joint_path(
+        *replan,
+        multipliers=designs.multipliers,
+        inverse_hessian=designs.inverse_hessian,
+        **kwargs,
+    )
+    assert bool(warm3.converged)
+    with pytest.raises(ValueError, match=r"inverse_hessian: expected shape \(2, "):
+        design_joint_path(*replan, inverse_hessian=jnp.zeros((2, 3, 3)), **kwargs)
     with pytest.raises(ValueError, match=r"multipliers: expected shape \(2, "):
         design_joint_path(model, cell, pred, samples, basis, inits, multipliers=jnp.zeros(3))
     with pytest.raises(ValueError, match=r"inits: expected shape \(B, 5, 6\)"):
@@ -254,7 +275,8 @@ def test_design_program_evaluates_objective_and_constraints_at_one_place(scene, 
 
         monkeypatch.setattr(jo._Problem, name, counted)
     rhos = jnp.ones(3)
-    jax.eval_shape(lambda: jo._design(inits, lams, problem, rhos, 10, 1e-9, 1e-3, 1e-3))
+    H0s = jnp.broadcast_to(jnp.eye(inits[0].size), (2, inits[0].size, inits[0].size))
+    jax.eval_shape(lambda: jo._design(inits, lams, H0s, problem, rhos, 10, 1e-9, 1e-3, 1e-3))
     assert traced == {"objective": 1, "constraints": 1}
 
 

@@ -84,6 +84,12 @@ class JointPathDesign(eqx.Module):
             (zeros for an evaluated path); pass them back with the design for a warm
             re-plan (``design_joint_path(..., multipliers=)``).
         rounds: augmented-Lagrangian rounds used (each start stops when it is converged).
+        evaluations: evaluations of the Lagrangian's value and gradient the search made
+            (0 for an evaluated path).
+        inverse_hessian: (p n, p n) the search's last BFGS estimate of the inverse Hessian
+            of the Lagrangian in the flattened parameters (the identity for an evaluated
+            path); pass it back for a warm re-plan (``design_joint_path(...,
+            inverse_hessian=)``), whose first round then starts from it.
     """
 
     theta: Float[Array, "p n"]
@@ -97,6 +103,8 @@ class JointPathDesign(eqx.Module):
     feasible: Bool[Array, ""]
     multipliers: Float[Array, " G"]
     rounds: Int[Array, ""]
+    evaluations: Int[Array, ""]
+    inverse_hessian: Float[Array, "n n"]
 
     def report(self) -> dict:
         """Per constraint: largest value, active (within 0.02), satisfied (host side)."""
@@ -213,6 +221,7 @@ class _Search(NamedTuple):
     lam: Float[Array, " G"]  # this round's multipliers
     lam_out: Float[Array, " G"]  # the multipliers reported
     rounds: Int[Array, ""]
+    evaluations: Int[Array, ""]  # of the Lagrangian's value and gradient
     done: Bool[Array, ""]
 
 
@@ -227,12 +236,15 @@ def _lagrangian(x, lam, rho, problem, shape):
 
 
 @eqx.filter_jit
-def _design(inits, lams, problem: _Problem, rhos, inner_steps, rtol, feasibility_tol, stat_tol):
+def _design(
+    inits, lams, H0s, problem: _Problem, rhos, inner_steps, rtol, feasibility_tol, stat_tol
+):
     """ALM rounds from each start until its design is converged or the rounds run out.
 
     Each round minimises the augmented Lagrangian by BFGS (inverse Hessian from the
-    identity, backtracking line search with Armijo's test, the step shrunk to the minimum
-    of the quadratic through the last trial). The whole search of one start is one loop
+    identity, or in the first round from the start's ``H0s``; backtracking line search
+    with Armijo's test, the step shrunk to the minimum of the quadratic through the last
+    trial). The whole search of one start is one loop
     with exactly one evaluation of the Lagrangian's value and gradient per pass (the
     first test of the start, a round's first point, or a line-search trial), so the
     compiled program holds the objective and the constraints once: about a quarter of the
@@ -257,7 +269,7 @@ def _design(inits, lams, problem: _Problem, rhos, inner_steps, rtol, feasibility
     # where each constraint's values lie in the flat vector
     bounds = list(itertools.pairwise(np.cumsum((0, *_constraint_sizes(problem, inits[0])))))
 
-    def step(s: _Search) -> _Search:
+    def step(s: _Search, H0) -> _Search:
         search = s.phase == _SEARCH
         rho = jnp.where(s.phase == _CHECK, jnp.asarray(RHO_CHECK, dtype), rhos[s.i])
         xt = jnp.where(search, s.x + s.alpha * s.p, s.x)
@@ -273,7 +285,7 @@ def _design(inits, lams, problem: _Problem, rhos, inner_steps, rtol, feasibility
         r = 1.0 / jnp.where(update, sy, 1.0)
         V = eye - r * jnp.outer(sv, yv)
         H = jnp.where(update, V @ s.H @ V.T + r * jnp.outer(sv, sv), s.H)
-        H = jnp.where(s.phase == _ROUND, eye, H)
+        H = jnp.where(s.phase == _ROUND, jnp.where(s.i == 0, H0, eye), H)
         x = jnp.where(accept, xt, s.x)
         f = jnp.where(accept, ft, s.f)
         g = jnp.where(accept, gt, s.g)
@@ -325,10 +337,11 @@ def _design(inits, lams, problem: _Problem, rhos, inner_steps, rtol, feasibility
             lam=jnp.where(end & ~last, lam_hat, s.lam),
             lam_out=jnp.where(kkt | last, lam_hat, s.lam_out),
             rounds=jnp.where(kkt, used, jnp.where(last, n_rounds, s.rounds)),
+            evaluations=s.evaluations + 1,
             done=kkt | last,
         )
 
-    def one(theta0, lam0):
+    def one(theta0, lam0, H0):
         x0 = theta0.reshape(-1)
         zero = jnp.zeros((), dtype)
         start = _Search(
@@ -346,19 +359,23 @@ def _design(inits, lams, problem: _Problem, rhos, inner_steps, rtol, feasibility
             lam=lam0,
             lam_out=lam0,
             rounds=jnp.zeros((), jnp.int32),
+            evaluations=jnp.zeros((), jnp.int32),
             done=jnp.zeros((), bool),
         )
-        s = jax.lax.while_loop(lambda s: ~s.done, step, start)
+        s = jax.lax.while_loop(lambda s: ~s.done, lambda s: step(s, H0), start)
         values = s.c - problem.margin  # the reports use the unmargined values
         viol = jnp.stack([jnp.max(values[a:b]) for a, b in bounds])
-        return s.x.reshape(shape), s.lam_out, jnp.max(jnp.abs(s.g)), s.rounds, viol, s.err
+        search = (s.rounds, s.evaluations, s.H)
+        return s.x.reshape(shape), s.lam_out, jnp.max(jnp.abs(s.g)), search, viol, s.err
 
-    return jax.vmap(one)(inits, lams)
+    return jax.vmap(one)(inits, lams, H0s)
 
 
-def _judged(theta, viol, errors, stat, lam, n, feasibility_tol, stationarity_tol):
-    """One :class:`JointPathDesign` from its largest value per constraint ``viol`` and its
-    expected errors ``(rms, mean, worst)``."""
+def _judged(theta, viol, errors, stat, lam, search, feasibility_tol, stationarity_tol):
+    """One :class:`JointPathDesign` from its largest value per constraint ``viol``, its
+    expected errors ``(rms, mean, worst)`` and its search's ``(rounds, evaluations,
+    inverse Hessian)``."""
+    rounds, evaluations, H = search
     worst = jnp.maximum(jnp.max(viol), 0.0)
     feasible = (worst <= feasibility_tol) & jnp.isfinite(errors[0])
     return JointPathDesign(
@@ -372,23 +389,25 @@ def _judged(theta, viol, errors, stat, lam, n, feasibility_tol, stationarity_tol
         converged=feasible & (stat <= stationarity_tol),
         feasible=feasible,
         multipliers=lam,
-        rounds=n,
+        rounds=rounds,
+        evaluations=evaluations,
+        inverse_hessian=H,
     )
 
 
 @eqx.filter_jit
-def _evaluate(thetas, stationarity, lams, rounds, problem, feasibility_tol, stationarity_tol):
-    def one(theta, stat, lam, n):
+def _evaluate(thetas, stationarity, lams, search, problem, feasibility_tol, stationarity_tol):
+    def one(theta, stat, lam, search):
         values = problem.constraint_values(theta)
         viol = jnp.stack([jnp.max(values[name]) for name in JOINT_CONSTRAINTS])
         errors = jnp.stack(problem.report_errors(theta))
-        return _judged(theta, viol, errors, stat, lam, n, feasibility_tol, stationarity_tol)
+        return _judged(theta, viol, errors, stat, lam, search, feasibility_tol, stationarity_tol)
 
-    return jax.vmap(one)(thetas, stationarity, lams, rounds)
+    return jax.vmap(one)(thetas, stationarity, lams, search)
 
 
 @eqx.filter_jit
-def _reported(thetas, stationarity, lams, rounds, viol, errors, tols):
+def _reported(thetas, stationarity, lams, search, viol, errors, tols):
     """The designs from what the search's last accepted evaluation computed: the largest
     (unmargined) value per constraint and the expected errors. A separate program for the
     report (:func:`_evaluate`) took 6 s of tracing and compilation on the built-in cell, a
@@ -397,7 +416,7 @@ def _reported(thetas, stationarity, lams, rounds, viol, errors, tols):
     def judge(*args):
         return _judged(*args, *tols)
 
-    return jax.vmap(judge)(thetas, viol, errors, stationarity, lams, rounds)
+    return jax.vmap(judge)(thetas, viol, errors, stationarity, lams, search)
 
 
 @eqx.filter_jit
@@ -508,8 +527,10 @@ def evaluate_joint_path(
     nan = jnp.full(thetas.shape[:1], jnp.nan, thetas.dtype)
     n_values = sum(_constraint_sizes(problem, thetas[0]))
     lams = jnp.zeros((thetas.shape[0], n_values), thetas.dtype)
-    rounds = jnp.zeros(thetas.shape[:1], jnp.int32)
-    return _evaluate(thetas, nan, lams, rounds, problem, feasibility_tol, 0.0)
+    B, n = thetas.shape[0], int(np.prod(thetas.shape[1:]))
+    zero = jnp.zeros(B, jnp.int32)
+    search = (zero, zero, jnp.broadcast_to(jnp.eye(n, dtype=thetas.dtype), (B, n, n)))
+    return _evaluate(thetas, nan, lams, search, problem, feasibility_tol, 0.0)
 
 
 def design_joint_path(
@@ -521,6 +542,7 @@ def design_joint_path(
     inits: Float[ArrayLike, "B p n"],
     *,
     multipliers: Float[ArrayLike, "B G"] | None = None,
+    inverse_hessian: Float[ArrayLike, "B n n"] | None = None,
     objective: str = "mean_error",
     estimator: str = "dct",
     layout: tuple | None = None,
@@ -546,6 +568,9 @@ def design_joint_path(
             last design's ``multipliers``, with ``penalties`` starting at its last penalty:
             a start already converged for the new prediction then stops at once, one that
             is not needs a round or two instead of the whole continuation.
+        inverse_hessian: (B, p n, p n) inverse Hessians for the first round's BFGS (default:
+            the identity); for a warm re-plan the last design's ``inverse_hessian``, so that
+            the search does not learn the curvature again from scratch.
         objective: ``"mean_error"`` (expected mean Euclidean error, default),
             ``"error"`` (expected RMS error) or ``"eta"`` (maximise Park et al.'s eta,
             geometric mean over the samples; cheap, but blind to conditioning).
@@ -611,15 +636,24 @@ def design_joint_path(
             raise ValueError(
                 f"multipliers: expected shape ({inits.shape[0]}, {n_values}), got {lams.shape}"
             )
-    thetas, lams, stationarity, rounds, viol, errors = _design(
-        inits, lams, problem, rhos, inner_steps, rtol, feasibility_tol, stationarity_tol
+    n = int(np.prod(model.shape))
+    if inverse_hessian is None:
+        H0s = jnp.broadcast_to(jnp.eye(n, dtype=inits.dtype), (inits.shape[0], n, n))
+    else:
+        H0s = jnp.asarray(inverse_hessian, inits.dtype)
+        if H0s.shape != (inits.shape[0], n, n):
+            raise ValueError(
+                f"inverse_hessian: expected shape ({inits.shape[0]}, {n}, {n}), got {H0s.shape}"
+            )
+    thetas, lams, stationarity, search, viol, errors = _design(
+        inits, lams, H0s, problem, rhos, inner_steps, rtol, feasibility_tol, stationarity_tol
     )
     tols = (feasibility_tol, stationarity_tol)
     if objective == "eta":  # the search did not compute the errors
         report = eqx.tree_at(lambda p: p.margin, problem, jnp.zeros_like(problem.margin))
-        designs = _evaluate(thetas, stationarity, lams, rounds, report, *tols)
+        designs = _evaluate(thetas, stationarity, lams, search, report, *tols)
     else:
-        designs = _reported(thetas, stationarity, lams, rounds, viol, errors, tols)
+        designs = _reported(thetas, stationarity, lams, search, viol, errors, tols)
     metric = designs.expected_error if objective == "error" else designs.expected_mean_error
     score = jnp.where(designs.feasible, metric, jnp.inf)
     i = jnp.where(jnp.any(designs.feasible), jnp.argmin(score), jnp.argmin(designs.max_violation))
