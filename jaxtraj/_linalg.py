@@ -11,15 +11,41 @@ products of tiny matrices).
 
 from __future__ import annotations
 
+import functools
+
+import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Float
 
 __all__ = ["cholesky_small", "det3", "matmul_small", "solve_spd_small", "solve_triangular_small"]
 
 
+@jax.custom_jvp
 def cholesky_small(A: Float[Array, "s s"]) -> Float[Array, "s s"]:
     """Lower Cholesky factor of a small SPD matrix, one column per step (NaN if not
-    positive definite, as LAPACK's result under JAX)."""
+    positive definite, as LAPACK's result under JAX). Only the lower triangle of ``A`` is
+    read. Differentiated by the analytic rule ``dL = L Phi(L^-1 dA L^-T)`` (``Phi``: the
+    strict lower triangle plus half the diagonal; ``dA`` is the symmetric matrix of its
+    lower triangle), whose products transpose into products: differentiating the unrolled
+    column steps instead made the smoother's design objective (value and gradient at a
+    fixed density, with :func:`solve_triangular_small`'s rule) 1.7x as slow."""
+    return _cholesky_steps(A)
+
+
+@cholesky_small.defjvp
+def _cholesky_small_jvp(primals, tangents):
+    (A,), (dA,) = primals, tangents
+    L = _cholesky_steps(A)
+    s = A.shape[-1]
+    lower = jnp.tril(dA)
+    dA = lower + jnp.tril(dA, -1).T  # the symmetric matrix that the lower triangle defines
+    Linv = _triangular_steps(L, jnp.eye(s, dtype=A.dtype))
+    X = matmul_small(matmul_small(Linv, dA), Linv.T)
+    phi = jnp.tril(jnp.ones((s, s), A.dtype), -1) + 0.5 * jnp.eye(s, dtype=A.dtype)
+    return L, matmul_small(L, X * phi)
+
+
+def _cholesky_steps(A):
     s = A.shape[-1]
     rows = jnp.arange(s)
     L = jnp.zeros_like(A)
@@ -32,7 +58,36 @@ def cholesky_small(A: Float[Array, "s s"]) -> Float[Array, "s s"]:
 
 def solve_triangular_small(C: Float[Array, "s s"], B: Array, *, trans: int = 0) -> Array:
     """Solve ``C x = B`` (``trans=0``) or ``C^T x = B`` (``trans=1``) for lower-triangular
-    ``C``; ``B`` is (s,) or (s, m). One row of ``x`` per step."""
+    ``C`` (its upper triangle is not read); ``B`` is (s,) or (s, m). One row of ``x`` per
+    step. Differentiated analytically, ``dx = C^-1 (dB - dC x)`` (transposed for
+    ``trans=1``), as :func:`cholesky_small`."""
+    return _solve_triangular(C, B, trans == 1)
+
+
+def _apply(M, r):
+    """``M @ r`` for (s, s) ``M`` and ``r`` of shape (s, ...), as a broadcast-and-sum."""
+    s = M.shape[-1]
+    return jnp.sum(M.reshape((s, s) + (1,) * (r.ndim - 1)) * r[None], axis=1)
+
+
+@functools.partial(jax.custom_jvp, nondiff_argnums=(2,))
+def _solve_triangular(C, B, transposed: bool):
+    return _triangular_steps(C, B, trans=int(transposed))
+
+
+@_solve_triangular.defjvp
+def _solve_triangular_jvp(transposed, primals, tangents):
+    (C, B), (dC, dB) = primals, tangents
+    x = _triangular_steps(C, B, trans=int(transposed))
+    s = C.shape[-1]
+    Cinv = _triangular_steps(C, jnp.eye(s, dtype=C.dtype))
+    dC = jnp.tril(dC)
+    if transposed:  # C^T x = B: dx = C^-T (dB - dC^T x)
+        return x, _apply(Cinv.T, dB - _apply(dC.T, x))
+    return x, _apply(Cinv, dB - _apply(dC, x))
+
+
+def _triangular_steps(C, B, *, trans: int = 0):
     s = C.shape[-1]
     M = C if trans == 0 else C.T
     x = jnp.zeros_like(B)

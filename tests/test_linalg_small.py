@@ -1,0 +1,66 @@
+"""The small step-by-step factorisations (`jaxtraj._linalg`): values equal LAPACK's, and
+their analytic derivative rules equal the derivatives of the steps themselves."""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from jaxtraj import _linalg as la
+
+jax.config.update("jax_enable_x64", True)
+
+
+def _spd(rng, s):
+    X = rng.normal(size=(s, s))
+    return X @ X.T + s * np.eye(s)
+
+
+def test_cholesky_rule_equals_the_steps_derivative(rng):
+    s = 6
+    A = _spd(rng, s)
+    A[np.triu_indices(s, 1)] += rng.normal(size=s * (s - 1) // 2)  # upper triangle not read
+    A = jnp.asarray(A)
+    L = la.cholesky_small(A)
+    np.testing.assert_allclose(L, np.linalg.cholesky(np.tril(A) + np.tril(A, -1).T), atol=1e-12)
+    for jac in (jax.jacfwd, jax.jacrev):
+        np.testing.assert_allclose(
+            jax.jit(jac(la.cholesky_small))(A),
+            jax.jit(jac(la._cholesky_steps))(A),
+            rtol=1e-10,
+            atol=1e-12,
+        )
+    # under vmap and jit, and differentiated twice
+    As = jnp.stack([A, A + jnp.eye(s)])
+    np.testing.assert_allclose(jax.jit(jax.vmap(la.cholesky_small))(As)[0], L, atol=1e-13)
+    h = jax.jit(jax.hessian(lambda a: jnp.sum(la.cholesky_small(a) ** 3)))(A)
+    h_steps = jax.jit(jax.hessian(lambda a: jnp.sum(la._cholesky_steps(a) ** 3)))(A)
+    np.testing.assert_allclose(h, h_steps, rtol=1e-9, atol=1e-10)
+
+
+@pytest.mark.parametrize("trans", [0, 1])
+@pytest.mark.parametrize("rhs", [(), (4,)])
+def test_triangular_solve_rule_equals_the_steps_derivative(rng, trans, rhs):
+    s = 6
+    C = np.tril(rng.normal(size=(s, s))) + 3 * np.eye(s)
+    C[np.triu_indices(s, 1)] = rng.normal(size=s * (s - 1) // 2)  # not read
+    C, B = jnp.asarray(C), jnp.asarray(rng.normal(size=(s, *rhs)))
+    x = la.solve_triangular_small(C, B, trans=trans)
+    T = np.tril(np.asarray(C))
+    np.testing.assert_allclose(x, np.linalg.solve(T.T if trans else T, np.asarray(B)), atol=1e-12)
+
+    def rule(C, B):
+        return la.solve_triangular_small(C, B, trans=trans)
+
+    def steps(C, B):
+        return la._triangular_steps(C, B, trans=trans)
+
+    for jac in (jax.jacfwd, jax.jacrev):
+        for got, want in zip(
+            jax.jit(jac(rule, argnums=(0, 1)))(C, B),
+            jax.jit(jac(steps, argnums=(0, 1)))(C, B),
+            strict=True,
+        ):
+            np.testing.assert_allclose(got, want, rtol=1e-10, atol=1e-12)
