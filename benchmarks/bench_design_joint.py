@@ -29,7 +29,8 @@ both random cameras: what separates the design from the paper's camera.
 Usage::
 
     python benchmarks/bench_design_joint.py [--frames 60] [--starts 8] [--inner-steps 500]
-        [--replans N] [--n-control 12] [--estimator dct|smoother1|smoother2|pose] [--out OUT/]
+        [--replans N] [--replan-penalty 30] [--n-control 12]
+        [--estimator dct|smoother1|smoother2|pose] [--out OUT/]
         [--compare [--draws 200] [--scenes sim,cmu131_01,cmu131_03]]
         [--limits-sweep 1,2,4 [--swept velocity,acceleration,jerk] [--scenes ...]]
 
@@ -54,7 +55,11 @@ import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 
 from jaxtraj import Status, dct_basis, estimate_points, reconstruct_points  # noqa: E402
-from jaxtraj.design.joint_optimise import design_joint_path, evaluate_joint_path  # noqa: E402
+from jaxtraj.design.joint_optimise import (  # noqa: E402
+    REPLAN_PENALTY,
+    design_joint_path,
+    evaluate_joint_path,
+)
 from jaxtraj.design.joint_path import camera_poses, projection_matrices  # noqa: E402
 from jaxtraj.design.objectives import project_points  # noqa: E402
 from jaxtraj.design_command import (  # noqa: E402
@@ -535,6 +540,13 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--starts", type=int, default=8)
     parser.add_argument("--inner-steps", type=int, default=500)
     parser.add_argument(
+        "--replan-penalty",
+        type=float,
+        default=REPLAN_PENALTY,
+        help="penalty of every round of the warm re-plans (100 in the figures before "
+        "2026-12-06's last)",
+    )
+    parser.add_argument(
         "--replans",
         type=int,
         default=0,
@@ -640,7 +652,8 @@ def main(argv: list[str] | None = None) -> int:
                 estimator=args.estimator,
                 layout=res["layout"],
                 pixel_sigma=spec.pixel_sigma,
-                penalties=(100.0,) * 8,  # the same length as the design's: no recompilation
+                # as many as the design's: nothing is compiled again
+                penalties=(args.replan_penalty,) * 8,
                 inner_steps=args.inner_steps,
             )
             warm.theta.block_until_ready()
@@ -681,7 +694,7 @@ def replan_spread(args, spec, res, best) -> None:
                 estimator=args.estimator,
                 layout=res["layout"],
                 pixel_sigma=spec.pixel_sigma,
-                penalties=(100.0,) * 8,
+                penalties=(args.replan_penalty,) * 8,
                 inner_steps=args.inner_steps,
             )
             warm.theta.block_until_ready()
