@@ -624,7 +624,7 @@ def main(argv: list[str] | None = None) -> int:
             f"predicted mean {1000 * float(best.expected_mean_error):.3f} mm, RMS "
             f"{1000 * float(best.expected_error):.3f} mm"
         )
-    # warm re-plan: the best design and its multipliers, from the last penalty on, with all
+    # warm re-plan: the best design and its multipliers, every round at --replan-penalty, all
     # starts (the design's shapes) and with the best one alone (the first call compiles);
     # the one-start re-plans with the BFGS started from the identity and from the design's
     # inverse Hessian, alternated, each moved by 10 mm and then by 20 mm
@@ -638,28 +638,10 @@ def main(argv: list[str] | None = None) -> int:
         ("one start, BFGS from the design's inverse Hessian", 1, (0.02,), True),
     ):
         for shift in shifts:
-            t0 = time.perf_counter()
-            warm, _ = design_joint_path(
-                res["model"],
-                res["cell"],
-                spec.predicted + shift,
-                res["samples"] + shift,
-                res["basis"],
-                jnp.stack([best.theta] * b),
-                multipliers=jnp.stack([best.multipliers] * b),
-                inverse_hessian=jnp.stack([best.inverse_hessian] * b) if warm_h else None,
-                objective=spec.objective,
-                estimator=args.estimator,
-                layout=res["layout"],
-                pixel_sigma=spec.pixel_sigma,
-                # as many as the design's: nothing is compiled again
-                penalties=(args.replan_penalty,) * 8,
-                inner_steps=args.inner_steps,
-            )
-            warm.theta.block_until_ready()
+            warm, seconds = _replan(args, spec, res, best, shift, warm_h, b)
             print(
                 f"warm re-plan, {label} (prediction moved by {1000 * shift:.0f} mm, from the "
-                f"design and its multipliers): {time.perf_counter() - t0:.2f} s, expected mean "
+                f"design and its multipliers): {seconds:.2f} s, expected mean "
                 f"error {1000 * float(warm.expected_mean_error):.2f} mm, stationarity "
                 f"{float(warm.stationarity):.1e}, converged {bool(warm.converged)}, "
                 f"{int(warm.rounds)} round(s), {int(warm.evaluations)} evaluations",
@@ -668,6 +650,31 @@ def main(argv: list[str] | None = None) -> int:
     if args.replans:
         replan_spread(args, spec, res, best)
     return 0
+
+
+def _replan(args, spec, res, best, move, warm_h: bool, b: int = 1):
+    """One warm re-plan of ``b`` copies of the best design, the prediction and samples
+    moved by ``move`` [m], the BFGS from the design's inverse Hessian if ``warm_h``;
+    returns the design and the seconds it took."""
+    t0 = time.perf_counter()
+    warm, _ = design_joint_path(
+        res["model"],
+        res["cell"],
+        spec.predicted + move,
+        res["samples"] + move,
+        res["basis"],
+        jnp.stack([best.theta] * b),
+        multipliers=jnp.stack([best.multipliers] * b),
+        inverse_hessian=jnp.stack([best.inverse_hessian] * b) if warm_h else None,
+        objective=spec.objective,
+        estimator=args.estimator,
+        layout=res["layout"],
+        pixel_sigma=spec.pixel_sigma,
+        penalties=(args.replan_penalty,) * 8,  # as many as the design's: no recompilation
+        inner_steps=args.inner_steps,
+    )
+    warm.theta.block_until_ready()
+    return warm, time.perf_counter() - t0
 
 
 def replan_spread(args, spec, res, best) -> None:
@@ -680,25 +687,7 @@ def replan_spread(args, spec, res, best) -> None:
         d = rng.normal(size=3)
         move = jnp.asarray(0.01 * d / np.linalg.norm(d))
         for warm_h in (False, True):
-            t0 = time.perf_counter()
-            warm, _ = design_joint_path(
-                res["model"],
-                res["cell"],
-                spec.predicted + move,
-                res["samples"] + move,
-                res["basis"],
-                best.theta[None],
-                multipliers=best.multipliers[None],
-                inverse_hessian=best.inverse_hessian[None] if warm_h else None,
-                objective=spec.objective,
-                estimator=args.estimator,
-                layout=res["layout"],
-                pixel_sigma=spec.pixel_sigma,
-                penalties=(args.replan_penalty,) * 8,
-                inner_steps=args.inner_steps,
-            )
-            warm.theta.block_until_ready()
-            seconds = time.perf_counter() - t0
+            warm, seconds = _replan(args, spec, res, best, move, warm_h)
             times[warm_h].append(seconds)
             print(
                 f"re-plan {i} ({'inverse Hessian' if warm_h else 'identity'}): {seconds:.2f} s, "
