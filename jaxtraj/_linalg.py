@@ -37,9 +37,8 @@ def _cholesky_small_jvp(primals, tangents):
     (A,), (dA,) = primals, tangents
     L = _cholesky_steps(A)
     s = A.shape[-1]
-    lower = jnp.tril(dA)
-    dA = lower + jnp.tril(dA, -1).T  # the symmetric matrix that the lower triangle defines
-    Linv = _triangular_steps(L, jnp.eye(s, dtype=A.dtype))
+    dA = jnp.tril(dA) + jnp.tril(dA, -1).T  # the symmetric matrix of the lower triangle
+    Linv = _lower_inverse(L)
     X = matmul_small(matmul_small(Linv, dA), Linv.T)
     phi = jnp.tril(jnp.ones((s, s), A.dtype), -1) + 0.5 * jnp.eye(s, dtype=A.dtype)
     return L, matmul_small(L, X * phi)
@@ -79,12 +78,16 @@ def _solve_triangular(C, B, transposed: bool):
 def _solve_triangular_jvp(transposed, primals, tangents):
     (C, B), (dC, dB) = primals, tangents
     x = _triangular_steps(C, B, trans=int(transposed))
-    s = C.shape[-1]
-    Cinv = _triangular_steps(C, jnp.eye(s, dtype=C.dtype))
+    Cinv = _lower_inverse(C)
     dC = jnp.tril(dC)
     if transposed:  # C^T x = B: dx = C^-T (dB - dC^T x)
         return x, _apply(Cinv.T, dB - _apply(dC.T, x))
     return x, _apply(Cinv, dB - _apply(dC, x))
+
+
+def _lower_inverse(C):
+    """``C^-1`` of a small lower-triangular ``C`` (for the derivative rules)."""
+    return _triangular_steps(C, jnp.eye(C.shape[-1], dtype=C.dtype))
 
 
 def _triangular_steps(C, B, *, trans: int = 0):

@@ -532,10 +532,15 @@ def evaluate_joint_path(
     nan = jnp.full(thetas.shape[:1], jnp.nan, thetas.dtype)
     n_values = sum(_constraint_sizes(problem, thetas[0]))
     lams = jnp.zeros((thetas.shape[0], n_values), thetas.dtype)
-    B, n = thetas.shape[0], int(np.prod(thetas.shape[1:]))
-    zero = jnp.zeros(B, jnp.int32)
-    search = (zero, zero, jnp.broadcast_to(jnp.eye(n, dtype=thetas.dtype), (B, n, n)))
+    zero = jnp.zeros(thetas.shape[:1], jnp.int32)
+    search = (zero, zero, _identities(thetas))
     return _evaluate(thetas, nan, lams, search, problem, feasibility_tol, 0.0)
+
+
+def _identities(thetas):
+    """(B, p n, p n) identities: the inverse Hessian of a search that has not begun."""
+    B, n = thetas.shape[0], int(np.prod(thetas.shape[1:]))
+    return jnp.broadcast_to(jnp.eye(n, dtype=thetas.dtype), (B, n, n))
 
 
 def design_joint_path(
@@ -642,15 +647,12 @@ def design_joint_path(
             raise ValueError(
                 f"multipliers: expected shape ({inits.shape[0]}, {n_values}), got {lams.shape}"
             )
-    n = int(np.prod(model.shape))
-    if inverse_hessian is None:
-        H0s = jnp.broadcast_to(jnp.eye(n, dtype=inits.dtype), (inits.shape[0], n, n))
-    else:
-        H0s = jnp.asarray(inverse_hessian, inits.dtype)
-        if H0s.shape != (inits.shape[0], n, n):
-            raise ValueError(
-                f"inverse_hessian: expected shape ({inits.shape[0]}, {n}, {n}), got {H0s.shape}"
-            )
+    H0s = _identities(inits)
+    if inverse_hessian is not None:
+        given = jnp.asarray(inverse_hessian, inits.dtype)
+        if given.shape != H0s.shape:
+            raise ValueError(f"inverse_hessian: expected shape {H0s.shape}, got {given.shape}")
+        H0s = given
     thetas, lams, stationarity, search, viol, errors = _design(
         inits, lams, H0s, problem, rhos, inner_steps, rtol, feasibility_tol, stationarity_tol
     )

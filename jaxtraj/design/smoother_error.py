@@ -93,7 +93,8 @@ def _terms(P, x, times, pixel_sigma, order, process_psd):
     if process_psd is None:
         grid = jnp.asarray(default_psd_grid(order), dtype) * qscale
 
-        Hs, gs, cs = jax.lax.stop_gradient((H, g, c))  # the density is held fixed
+        # the density is held fixed for gradients: its search sees no tangents
+        Hs, gs, cs = jax.lax.stop_gradient((H, g, c))
 
         def expected_neg2_log_evidence(q):
             D, E, b = _assemble(Hs, gs, A, Qinv, 1 / q, order)
@@ -101,8 +102,7 @@ def _terms(P, x, times, pixel_sigma, order, process_psd):
             edf = jnp.einsum("fij,fji->", Hs, bt.diag_inverse(chol)[:, :3, :3])
             return cs - jnp.sum(y * y) - edf + bt.logdet(chol) + (F - 1) * s * jnp.log(q)
 
-        crit = jax.vmap(expected_neg2_log_evidence)(jax.lax.stop_gradient(grid))
-        q = jax.lax.stop_gradient(_argmin_log(grid, jax.lax.stop_gradient(crit)))
+        q = _argmin_log(grid, jax.vmap(expected_neg2_log_evidence)(grid))
     else:
         q = process_psd * qscale
 
