@@ -215,7 +215,8 @@ def design_cell(spec: CellSpec, *, inner_steps: int = 500) -> dict:
     )
     best.theta.block_until_ready()
     seconds = time.perf_counter() - t0
-    fine = JointPathModel.create(spec.times, q0, n_control=spec.n_control, grid_per_image=100)
+    per_image = 10 * JointPathModel.default_grid_per_image(spec.times)  # 10x the design's
+    fine = JointPathModel.create(spec.times, q0, n_control=spec.n_control, grid_per_image=per_image)
     visible = visible_points(samples, layout)
     values = joint_constraint_values(fine, best.theta, cell, spec.predicted, visible)
     return {

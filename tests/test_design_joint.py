@@ -19,6 +19,7 @@ from jaxtraj.design.joint_optimise import (
 )
 from jaxtraj.design.joint_path import (
     JOINT_CONSTRAINTS,
+    MAX_GRID_STEP,
     JointPathModel,
     RobotCell,
     joint_constraint_values,
@@ -104,6 +105,18 @@ def test_path_starts_at_q0_at_rest_and_fits_a_path(scene, rng):
         JointPathModel.create(scene["times"], scene["q0"], n_control=6)
     with pytest.raises(ValueError, match="strictly increasing"):
         JointPathModel.create(scene["times"][::-1], scene["q0"])
+
+
+def test_default_grid_is_at_most_max_grid_step_apart(scene):
+    """The default limit grid: 10 points per image interval where the images are close,
+    more where they are further apart than 10 grid steps (12 images over 10 s)."""
+    for frames, per_image in ((60, 10), (12, 46), (200, 10)):
+        times = np.linspace(0.0, 10.0, frames)
+        assert JointPathModel.default_grid_per_image(times) == per_image
+        model = JointPathModel.create(times, scene["q0"], n_control=8)
+        steps = np.diff(np.asarray(model.grid))
+        assert model.grid.shape == (per_image * (frames - 1) + 1,)
+        assert steps.max() <= MAX_GRID_STEP + 1e-12
 
 
 def test_constraint_values_against_direct_computation(scene, rng):

@@ -104,6 +104,16 @@ class RobotCell(eqx.Module):
     depth_order: int = eqx.field(static=True, default=2)
 
 
+#: longest time between two points of the default limit-check grid [s]. A constraint rises
+#: between grid points ``h`` apart by at most ``h^2 / 8`` times its second derivative; the
+#: design's 1 % margin (``design_joint_path(grid_margin=)``) covers that only on a fine
+#: enough grid. With 12 images over 10 s and 10 points per image interval (0.091 s apart), an
+#: active floor constraint of the built-in cell rose 2.8 mm (2.8 % of its 0.1 m clearance)
+#: between them on one host; 0.02 s apart the same curvature gives 0.13 mm. The built-in
+#: cell's 60 images over 10 s with 10 points per interval are 0.017 s apart.
+MAX_GRID_STEP = 0.02
+
+
 class JointPathModel(eqx.Module):
     """The joint path model of one recording (a pytree; ``theta`` is passed separately).
 
@@ -131,7 +141,7 @@ class JointPathModel(eqx.Module):
         *,
         n_control: int = 12,
         degree: int = 5,
-        grid_per_image: int = 10,
+        grid_per_image: int | None = None,
         geometry_stride: int = 1,
     ) -> JointPathModel:
         """A model with ``n_control`` control points per joint over ``[times[0], times[-1]]``.
@@ -143,7 +153,9 @@ class JointPathModel(eqx.Module):
                 agile.
             degree: B-spline degree (>= 3 so that jerk exists; default quintic).
             grid_per_image: limit-check samples per image interval (the grid has
-                ``grid_per_image * (F - 1) + 1`` points, the image times among them).
+                ``grid_per_image * (F - 1) + 1`` points, the image times among them);
+                default :meth:`default_grid_per_image`: at least 10 and at most
+                :data:`MAX_GRID_STEP` apart.
         """
         t = np.asarray(times, float)
         check_shape("times", t, (None,), "(F,) image times")
@@ -154,6 +166,8 @@ class JointPathModel(eqx.Module):
             raise ValueError(f"degree: expected >= 3 (jerk must exist), got {degree}")
         if n_control < degree + 2:
             raise ValueError(f"n_control: expected >= degree + 2 = {degree + 2}, got {n_control}")
+        if grid_per_image is None:
+            grid_per_image = cls.default_grid_per_image(t)
         if grid_per_image < 1:
             raise ValueError(f"grid_per_image: expected >= 1, got {grid_per_image}")
         if geometry_stride < 1 or grid_per_image % geometry_stride:
@@ -176,6 +190,13 @@ class JointPathModel(eqx.Module):
             jnp.asarray(q0, dtype),
             geometry_stride,
         )
+
+    @staticmethod
+    def default_grid_per_image(times: Float[ArrayLike, " F"]) -> int:
+        """Limit-check samples per image interval of the default grid: 10, or more where
+        the images are further apart than ``10 *`` :data:`MAX_GRID_STEP`."""
+        longest = float(np.max(np.diff(np.asarray(times, float))))
+        return max(10, int(np.ceil(longest / MAX_GRID_STEP - 1e-9)))
 
     @property
     def shape(self) -> tuple[int, int]:
