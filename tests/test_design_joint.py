@@ -205,6 +205,11 @@ def test_design_converges_and_holds_on_a_10x_finer_grid(scene, rng):
         model, cell, pred + 0.01, samples + 0.01, basis, jnp.stack([best.theta] * 2), **kwargs
     )
     assert bool(warm.converged)
+    # each start is its own search (starts_in="auto" on a CPU): a start alone gives the
+    # same design bit for bit
+    _, alone = design_joint_path(model, cell, pred, samples, basis, inits[1:], **kwargs)
+    np.testing.assert_array_equal(np.asarray(alone.theta[0]), np.asarray(designs.theta[1]))
+    assert int(alone.evaluations[0]) == int(designs.evaluations[1])
     # started from a design and its multipliers, a start already converged stops at once
     # (no round, the design unchanged) ...
     assert np.all(np.asarray(designs.rounds) <= 6) and np.all(np.asarray(designs.rounds) >= 1)
@@ -291,6 +296,39 @@ def test_design_program_evaluates_objective_and_constraints_at_one_place(scene, 
     H0s = jnp.broadcast_to(jnp.eye(inits[0].size), (2, inits[0].size, inits[0].size))
     jax.eval_shape(lambda: jo._design(inits, lams, H0s, problem, rhos, 10, 1e-9, 1e-3, 1e-3))
     assert traced == {"objective": 1, "constraints": 1}
+
+
+def test_starts_run_as_one_search_each_on_threads_or_as_one_vectorised_search(monkeypatch):
+    """``starts_in``: "threads" runs one single-start search per start and stacks them in
+    the starts' order, "vmap" one search of all starts, "auto" threads on a CPU only."""
+    from jaxtraj.design import joint_optimise as jo
+
+    calls = []
+
+    def fake(inits, lams, H0s, *args):
+        calls.append(inits.shape[0])
+        # the caller's thread-local settings hold in the threads too
+        assert jnp.asarray(1.0).dtype == jnp.float32
+        return inits[:, 0, 0] * 10, (lams, H0s[:, 0])
+
+    monkeypatch.setattr(jo, "_design", fake)
+    f32 = np.float32
+    inits = np.arange(5, dtype=f32)[:, None, None] * np.ones((5, 2, 3), f32)
+    lams, H0s = np.zeros((5, 4), f32), np.ones((5, 6, 6), f32)
+    for mode, sizes in (("threads", [1] * 5), ("vmap", [5]), ("auto", [1] * 5)):
+        calls.clear()
+        with jax.enable_x64(False):  # the suite runs with float64 enabled globally
+            out, (lam, H) = jo._run_starts(mode, inits, lams, H0s, "problem")
+        assert calls == sizes, mode
+        np.testing.assert_array_equal(out, 10 * np.arange(5.0))
+        assert lam.shape == (5, 4) and H.shape == (5, 6)
+    monkeypatch.setattr(jo, "platform_of", lambda x: "gpu")
+    calls.clear()
+    with jax.enable_x64(False):
+        jo._run_starts("auto", inits, lams, H0s, "problem")
+    assert calls == [5]
+    with pytest.raises(ValueError, match="starts_in: expected one of"):
+        design_joint_path(None, None, None, None, None, inits, starts_in="pool")
 
 
 def test_design_report_from_the_search_equals_an_independent_evaluation(scene, rng):
