@@ -17,8 +17,8 @@ In the robot's joint space (the path a KUKA arm executes, orientation included):
   joint position/velocity/acceleration/jerk limits on a fine grid, field of view,
   stand-off, keep-out, floor, optional end position;
 * :mod:`.joint_optimise` - augmented Lagrangian with a BFGS of its own (one evaluation
-  site, KKT test after every step), vmapped starts, reporting the largest violation and
-  the KKT stationarity.
+  site, KKT test after every step), the starts on a CPU's threads or vmapped, reporting
+  the largest violation and the KKT stationarity.
 """
 
 from .constraints import CONSTRAINTS as CONSTRAINTS
