@@ -403,7 +403,8 @@ def _run_starts(starts_in, inits, lams, H0s, *args):
     others), and on a CPU a start's evaluation costs as much alone as in the batch (1.95
     against 1.93 ms per start and evaluation), so the vectorised search does the slowest
     start's work eight times. One search per start does each start's own work, and the
-    cores share it: 75.8 s -> 35-37 s with compilation on 2 cores (README, issue 21).
+    cores share it: 77.2 -> 28.1 s with compilation on 2 cores, pose 42.2 -> 33.2 s,
+    smoother2 117.6 -> 72.2 s (README, issue 21).
     JAX compiles the program once (the other threads wait for it); a start's result does
     not depend on the number of threads or their order.
     """
