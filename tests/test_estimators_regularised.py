@@ -84,6 +84,35 @@ def test_gain_weighted_penalty_choice_on_a_fast_camera():
     assert float(chosen.gain) == pytest.approx(float(gain[int(np.argmin(choice.criterion))]))
 
 
+def test_kfold_curve_equals_refits_of_each_fold():
+    """The K-fold choice's held-out RMS at every weight (from one eigendecomposition per
+    fold) equals refitting each fold's training frames with the solver, a missing frame
+    included, and its gain that of the solver on all frames."""
+    s = make_scene(jax.random.PRNGKey(8), n_frames=30, noise_px=0.5)
+    basis = jt.DCTBasis.from_times(s.times, 6)
+    Phi, rough = basis(s.times), roughness_penalty(basis)
+    uv = np.asarray(s.uv).copy()
+    w = np.ones(30)
+    w[7], uv[7] = 0.0, np.nan  # a missing detection
+    grid = np.logspace(-3, 5, 5)
+    choice = select_penalty_cv(s.P, uv, basis, s.times, w, grid=grid, folds=3)
+    held = np.arange(30)[None, :] % 3 == np.arange(3)[:, None]
+    direct = []
+    for lam in grid:
+        per_fold = []
+        for mask in held:
+            fit = jt.reconstruct(s.P, uv, Phi, np.where(mask, 0.0, w), penalty=lam * rough)
+            proj = np.einsum("fij,fj->fi", np.asarray(s.P)[:, :, :3], fit.points)
+            proj = proj + np.asarray(s.P)[:, :, 3]
+            err2 = np.sum((proj[:, :2] / proj[:, 2:] - uv) ** 2, axis=1)
+            per_fold.append(np.sqrt(np.mean(err2[mask & (w > 0)])))
+        direct.append(np.mean(per_fold))
+        full = jt.reconstruct(s.P, uv, Phi, w, penalty=lam * rough)
+        j = len(direct) - 1
+        assert float(choice.gain[j]) == pytest.approx(float(full.gain), rel=0.02)
+    np.testing.assert_allclose(choice.cv_rms_px, direct, rtol=1e-7)
+
+
 def test_bad_input(rng):
     s = make_scene(jax.random.PRNGKey(1), n_frames=30)
     Phi = jt.dct_basis(s.times, 6)

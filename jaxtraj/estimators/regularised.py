@@ -9,31 +9,38 @@ because the cosines are orthogonal on the span. Adding ``lam`` times this to the
 squares (``penalty = lam * roughness_penalty(basis, m)`` in :func:`jaxtraj.reconstruct`)
 lets k be large - up to the number of frames - without the ill-conditioning of a large
 unregularised basis: the data decide how much high-frequency motion to keep. ``lam`` is
-chosen by K-fold cross-validation on held-out reprojection error, batched over a grid,
-weighted by the conditioning gain beyond a healthy value as in
+chosen by K-fold cross-validation on held-out reprojection error over a grid, weighted
+by the conditioning gain beyond a healthy value as in
 :func:`jaxtraj.estimators.select_k_cv` (a weak penalty on a fast, smooth camera path
 reprojects well and is still far off along the rays).
 
-The batched driver can instead choose ``lam`` by generalised cross-validation
-(``criterion="gcv"``), from one simultaneous diagonalisation per track. With the normal
-matrix ``A`` (equilibrated, ``A = L L^T``) and the diagonal penalty ``R``, let
-``L^-1 R L^-T = U diag(s) U^T``; then ``A + lam R = L U (I + lam diag(s)) U^T L^T`` for
-every ``lam`` at once, so with ``c = U^T L^-1 b`` and ``f_i = 1 / (1 + lam s_i)``:
+Every choice of ``lam`` fits the track at every grid value from one simultaneous
+diagonalisation (:func:`_diagonalise`). The constant coefficient is free (``R_0 = 0``) and
+is eliminated by its Schur complement ``S`` in the normal matrix ``A``; with the other
+coefficients scaled by the penalty, ``R^-1/2 S R^-1/2 = V diag(e) V^T`` gives
 
-* the coefficients are ``L^-T U (f * c)``;
-* the residual sum of squares is ``RSS(0) + sum_i (c_i (1 - f_i))^2``;
-* the effective number of parameters (the hat matrix's trace) is ``sum_i f_i``;
-* ``GCV = n RSS / (n - sum_i f_i)^2`` over the ``n`` ray-constraint rows, an estimate of
-  the leave-one-out prediction error that needs no refit;
+    (A + lam R)^-1 = E + H diag(1 / (e + lam)) H^T
+
+for every ``lam`` at once (``E``: the constant's block ``A11^-1``; ``H`` fixed per track),
+so each weight costs one matrix product instead of a factorisation:
+
+* K-fold (the default): one eigendecomposition per fold's training frames gives the
+  held-out points at every weight, and one of all frames gives the gain at every weight:
+  ``folds + 1`` eigendecompositions of ``3k - 3`` per track instead of
+  ``folds x G + G`` factorisations (the same choice up to rounding);
+* generalised cross-validation (``criterion="gcv"`` of the batched driver): one
+  eigendecomposition, ``GCV = n RSS / (n - edf)^2`` over the ``n`` ray-constraint rows
+  with ``edf = 3 + sum_i e_i / (e_i + lam)`` (the hat matrix's trace), an estimate of
+  the leave-one-out prediction error that needs no refit; GCV measures the residual of
+  the ray constraints (pixels times depth), not pixels;
 * the conditioning gain's bound (that of :func:`jaxtraj.reconstruct`) is the top
-  eigenvalue of ``diag(f) K^T K diag(f)``, ``K`` fixed per track.
+  eigenvalue of ``K diag(h) K^T`` with ``h = (1, 1, 1, e / (e + lam)^2)`` and ``K`` fixed
+  per track.
 
-One symmetric eigendecomposition of ``3k x 3k`` replaces the ``folds x G`` factorisations
-of the K-fold choice (a LAPACK call per track, in a loop over tracks, never batched on a
-CPU). The criterion is the same gain-weighted rule with the GCV's RMS in place of the
-held-out reprojection RMS; GCV measures the residual of the ray constraints (pixels
-times depth), not pixels. Like the K-fold choice it is blind along the rays, which the
-gain weighting and :func:`flag_undetermined_depth` answer.
+The eigendecompositions are LAPACK calls, one track and one fold per loop step on a CPU,
+never a batched call. Both criteria use the same gain-weighted rule; like every
+criterion on the pixels they are blind along the rays, which the gain weighting and
+:func:`flag_undetermined_depth` answer.
 """
 
 from __future__ import annotations
@@ -44,11 +51,11 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jax.scipy.linalg import solve_triangular
 from jaxtyping import Array, ArrayLike, Float, Int
 
 from .._batching import map_points, points_per_step
 from .._checks import check_finite, check_shape, check_tracks, is_concrete
+from .._linalg import cholesky_small, solve_triangular_small
 from .._spd import top_eigenvalue
 from ..basis import DCTBasis
 from ..depth import camera_centres, depth_uncertainty, with_ray_bound
@@ -131,7 +138,8 @@ def select_penalty_cv(
 ) -> PenaltyChoice:
     """Choose ``lam`` by K-fold cross-validation on held-out reprojection error.
 
-    Every (fold, grid value) pair is one batched solve (vmapped). ``rule="reprojection"``
+    Each fold's fit at every grid value comes from one eigendecomposition of its training
+    frames' system (module notes), the folds in a loop. ``rule="reprojection"``
     picks the value with the smallest mean held-out RMS ``e``; ``rule="gain_weighted"``
     (default) the smallest ``e * max(1, gain / healthy_gain)``, with the conditioning gain
     of the penalised solve on all frames (the rule of
@@ -157,16 +165,84 @@ def select_penalty_cv(
     return _cv(P, uv, Phi, w, rough, grid, held, healthy)
 
 
-@eqx.filter_jit
-def _cv(P, uv, Phi, w, rough, grid, held, healthy_gain):
-    def held_out_rms(lam, mask):
-        train = jnp.where(mask, 0.0, w)
-        res = reconstruct(P, uv, Phi, train, penalty=lam * rough, diagnostics=False)
-        return _reprojection_rms(P, uv, res.points, mask & (w > 0))
+class _Diagonal(eqx.Module):
+    """The penalised fit of one track at every weight from one eigendecomposition.
 
-    per = jax.vmap(lambda lam: jax.vmap(lambda m: held_out_rms(lam, m))(held))(grid)
-    score = jnp.mean(per, axis=1)
-    gain = jax.vmap(lambda lam: reconstruct(P, uv, Phi, w, penalty=lam * rough).gain)(grid)
+    The constant column (``rough[0] = 0``, coefficients 0-2) is eliminated by its Schur
+    complement ``S`` and the other coefficients are scaled by the penalty: with
+    ``R^-1/2 S R^-1/2 = V diag(ev) V^T``, ``(A + lam R)^-1 = E + H diag(1 / (ev + lam)) H^T``
+    for every ``lam`` (``E``: ``A11^-1`` in the constant's block), so the coefficients at
+    any weight cost one matrix product and no Cholesky factor of the whole system or
+    triangular solve with a full right-hand side is needed."""
+
+    ev: Array  # (3k - 3,) eigenvalues, >= 0
+    H: Array  # (3k, 3k - 3)
+    Cinv: Array  # (3, 3) inverse Cholesky factor of A11
+    Eb: Array  # (3k,) E b
+    z: Array  # (3k - 3,) H^T b
+
+    def coefficients(self, grid):
+        """(3k, G) coefficients at the weights ``grid``."""
+        return self.Eb[:, None] + self.H @ (self.z[:, None] / (self.ev[:, None] + grid[None, :]))
+
+    def gain(self, Lg, spread_hi, grid):
+        """(G,) the solver's conditioning-gain bound at each weight: the top eigenvalue of
+        ``R N^-1 A N^-1 R^T = K diag(h) K^T`` (``Theta^T Theta = R^T R``, 8 Lanczos steps)."""
+        n3, dtype = self.H.shape[0], self.H.dtype
+        k = n3 // 3
+        cols = jnp.concatenate([jnp.zeros((n3, 3), dtype).at[:3].set(self.Cinv.T), self.H], 1)
+        K = jnp.einsum("ji,jan->ian", Lg, cols.reshape(k, 3, n3)).reshape(n3, n3)
+        KtK = K.T @ K
+        v0 = 1.0 + 0.1 * jnp.modf(jnp.arange(n3) * 0.6180339887498949)[0].astype(dtype)
+        ev = self.ev
+
+        def top(lam):
+            h = jnp.concatenate([jnp.ones(3, dtype), jnp.sqrt(ev) / (ev + lam)])
+            return top_eigenvalue(lambda v: h * (KtK @ (h * v)), v0, 8)
+
+        return jnp.sqrt(jnp.maximum(jax.vmap(top)(grid), 0.0) * spread_hi)
+
+
+def _diagonalise(P, uv, Phi, w, rough) -> _Diagonal:
+    """:class:`_Diagonal` of one track (``uv`` zero where ``w`` is; ``rough[0] = 0``, the
+    others positive, as :func:`roughness_penalty` gives). One symmetric eigendecomposition
+    (LAPACK): call it unbatched on a CPU (a loop over tracks and folds)."""
+    dtype = P.dtype
+    eps = jnp.finfo(dtype).eps
+    A, b = _assemble(P, uv, Phi, w, None)
+    A11, A12, A22 = A[:3, :3], A[:3, 3:], A[3:, 3:]
+    C = cholesky_small(A11 + eps * jnp.trace(A11) * jnp.eye(3, dtype=dtype))  # ridge: safety
+    Cinv = solve_triangular_small(C, jnp.eye(3, dtype=dtype))
+    T = Cinv.T @ (Cinv @ A12)  # A11^-1 A12
+    rs = jax.lax.rsqrt(jnp.repeat(rough[1:], 3))  # R^-1/2 of the penalised coefficients
+    M = (A22 - A12.T @ T) * rs[:, None] * rs[None, :]
+    ev, V = jnp.linalg.eigh(0.5 * (M + M.T))
+    H = jnp.concatenate([-(T * rs[None, :]) @ V, rs[:, None] * V])
+    Eb = jnp.zeros(A.shape[0], dtype).at[:3].set(Cinv.T @ (Cinv @ b[:3]))
+    return _Diagonal(ev=jnp.maximum(ev, 0.0), H=H, Cinv=Cinv, Eb=Eb, z=H.T @ b)
+
+
+def _points_at(Phi, diag: _Diagonal, grid):
+    """(F, 3, G) fitted positions and (3k, G) coefficients at every weight of ``grid``."""
+    B = diag.coefficients(grid)
+    return jnp.einsum("fu,uag->fag", Phi, B.reshape(Phi.shape[1], 3, -1)), B
+
+
+@eqx.filter_jit
+def _cv(P, uv, Phi, w, rough, grid, held, healthy_gain, Lg=None):
+    """K-fold choice of one track: each fold's fit at every weight from one
+    eigendecomposition of its training frames (:func:`_diagonalise`), the folds in a loop
+    (unbatched LAPACK calls), and the gain at every weight from that of all frames."""
+    Lg = jnp.linalg.cholesky(Phi.T @ Phi) if Lg is None else Lg
+
+    def held_out_rms(mask):
+        X, _ = _points_at(Phi, _diagonalise(P, uv, Phi, jnp.where(mask, 0.0, w), rough), grid)
+        rms = jax.vmap(lambda x: _reprojection_rms(P, uv, x, mask & (w > 0)), in_axes=2)
+        return rms(X)
+
+    score = jnp.mean(jax.lax.map(held_out_rms, held), axis=0)
+    _, _, Q, _ = _frame_blocks(P, uv, w)
+    gain = _diagonalise(P, uv, Phi, w, rough).gain(Lg, _frame_spread(Q, w)[1], grid)
     crit = score if healthy_gain is None else score * jnp.maximum(1.0, gain / healthy_gain)
     crit = jnp.where(jnp.isfinite(crit), crit, jnp.inf)
     return PenaltyChoice(
@@ -277,10 +353,10 @@ def regularised_covariance(
     )
 
 
-#: tracks per step of the cross-validation loop on a CPU and on an accelerator: under one
-#: vmap every track's folds x grid systems (3k x 3k each) would be held at once (18 GB for
-#: 256 tracks at k = 60), so the accelerator's groups are bounded too
-CV_BATCH = 4
+#: tracks per step of the cross-validation loop on a CPU (one: each fold's
+#: eigendecomposition is then one unbatched LAPACK call) and on an accelerator (each track
+#: holds a few 3k x 3k matrices per fold, so all at once would not fit for large N)
+CV_BATCH = 1
 CV_BATCH_ACCELERATOR = 64
 #: the conditioning gain above which the drivers' fits are DEGENERATE (the solver's default)
 MAX_GAIN = 20.0
@@ -297,8 +373,9 @@ def _regularised_points(
     # cv_tracks: None (a weight per point) or the indices of the tracks whose mean
     # criterion chooses one shared weight.
     sel = slice(None) if cv_tracks is None else np.asarray(cv_tracks)
+    Lg = jnp.linalg.cholesky(Phi.T @ Phi)  # Theta^T Theta = Lg Lg^T, shared by the tracks
     choice = map_points(
-        lambda a: _cv(P, a[0], Phi, a[1], rough, grid, held, healthy_gain),
+        lambda a: _cv(P, a[0], Phi, a[1], rough, grid, held, healthy_gain, Lg),
         (uv[sel], w[sel]),
         cv_per_step,
     )
@@ -336,43 +413,26 @@ GCV_BATCH_ACCELERATOR = 64
 
 def _gcv_track(P, uv, Phi, Lg, w, rough, grid, healthy_gain, max_gain):
     """Generalised cross-validation of one track over ``grid`` and its fit at the chosen
-    weight (module notes): ``(Reconstruction, PenaltyChoice)``."""
-    dtype = P.dtype
+    weight (module notes; the fit at every weight from :func:`_diagonalise`):
+    ``(Reconstruction, PenaltyChoice)``."""
     k = Phi.shape[1]
-    n3 = 3 * k
     observed = w > 0
-    A, b = _assemble(P, uv, Phi, w, None)
     _, _, Q, q = _frame_blocks(P, uv, w)
     rows = 2 * jnp.sum(observed)
-    d = jax.lax.rsqrt(jnp.maximum(jnp.diag(A), jnp.finfo(dtype).tiny))
-    As = A * d[:, None] * d[None, :] + 16 * jnp.finfo(dtype).eps * jnp.eye(n3, dtype=dtype)
-    L = jnp.linalg.cholesky(As)
-    Z = solve_triangular(L, jnp.diag(jnp.sqrt(jnp.repeat(rough, 3)) * d), lower=True)
-    s, U = jnp.linalg.eigh(Z @ Z.T)
-    s = jnp.maximum(s, 0.0)
-    c = U.T @ solve_triangular(L, d * b, lower=True)
-    rss0 = jnp.maximum(jnp.sum(w[:, None] * q * q) - jnp.sum(c * c), 0.0)
-    G = d[:, None] * solve_triangular(L.T, U, lower=False)  # N^-1 = G diag(f) G^T
-    K = jnp.einsum("ji,jan->ian", Lg, G.reshape(k, 3, n3)).reshape(n3, n3)
-    KtK = K.T @ K
-    spread_hi = _frame_spread(Q, w)[1]
-    v0 = 1.0 + 0.1 * jnp.modf(jnp.arange(n3) * 0.6180339887498949)[0].astype(dtype)
-
-    def at(lam):
-        f = 1.0 / (1.0 + lam * s)
-        rss = rss0 + jnp.sum((c * (1.0 - f)) ** 2)
-        dof = rows - jnp.sum(f)
-        gcv = jnp.where(dof > 0, rows * rss / jnp.where(dof > 0, dof, 1.0) ** 2, jnp.inf)
-        top = top_eigenvalue(lambda v: f * (KtK @ (f * v)), v0, 8)
-        return jnp.sqrt(gcv), jnp.sqrt(jnp.maximum(top, 0.0) * spread_hi)
-
-    score, gain = jax.lax.map(at, grid)
+    diag = _diagonalise(P, uv, Phi, w, rough)
+    X, B = _points_at(Phi, diag, grid)
+    r = q[:, :, None] - jnp.sum(Q[:, :, :, None] * X[:, None, :, :], axis=2)  # (F, 2, G)
+    rss = jnp.sum(w[:, None, None] * r * r, axis=(0, 1))
+    edf = 3 + jnp.sum(diag.ev[:, None] / (diag.ev[:, None] + grid[None, :]), axis=0)
+    dof = rows - edf
+    score = jnp.sqrt(jnp.where(dof > 0, rows * rss / jnp.where(dof > 0, dof, 1.0) ** 2, jnp.inf))
+    gain = diag.gain(Lg, _frame_spread(Q, w)[1], grid)
     crit = score if healthy_gain is None else score * jnp.maximum(1.0, gain / healthy_gain)
     crit = jnp.where(jnp.isfinite(crit), crit, jnp.inf)
     i = jnp.argmin(crit)
-    beta = G @ (c / (1.0 + grid[i] * s))
+    beta = B[:, i]
     coeffs = beta.reshape(k, 3)
-    points = Phi @ coeffs
+    points = X[:, :, i]
     finite = jnp.all(jnp.isfinite(uv), axis=1) | ~observed
     kappa, rel = _ray_checks(P, points, Q, observed, gain[i])
     degenerate = (gain[i] > max_gain) | ~jnp.isfinite(gain[i]) | ~jnp.all(jnp.isfinite(beta))
@@ -446,12 +506,11 @@ def reconstruct_regularised_points(
     weight per point returns the fit at the chosen weight from the same decomposition.
     ``max_rms_px``: as for :func:`reconstruct_regularised` (the statuses are the same).
 
-    Cost: per cross-validated track, K-fold: ``folds * G`` penalised solves of the
-    ``3k x 3k`` system and ``G`` gain bounds (G = 15 grid values by default), each about
-    ``(3k)^3`` multiply-adds for its factorisation; this, not the assembly, dominates for
-    the default k = min(F, 60): about 65-140 ms per track at F = 150 on 2 cores (AMD EPYC,
-    Intel Xeon). GCV: one Cholesky factorisation and one symmetric eigendecomposition of
-    ``3k x 3k`` and a few matrix products. A shared weight pays the choice for
+    Cost: per cross-validated track, K-fold: ``folds + 1`` symmetric eigendecompositions
+    of ``3k - 3`` rows (module notes) and a few matrix products per grid value; these, not
+    the assembly, dominate for the default k = min(F, 60): about 26-31 ms per track at
+    F = 150 on 2 cores (Intel Xeon, 5 folds, 15 grid values). GCV: one eigendecomposition
+    and a few matrix products, about 5-6 ms per track. A shared weight pays the choice for
     ``cv_points`` tracks only, then one solve per point (README: per-point cost of the
     batched drivers). A shared weight suits points of one rigid workpiece (the same
     motion, the same cameras and noise); points that move differently want their own.
