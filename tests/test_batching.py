@@ -64,6 +64,33 @@ def test_accelerator_grouping_gives_the_cpu_numbers(rng, monkeypatch):
     np.testing.assert_array_equal(np.asarray(got_k.k), np.asarray(ref_k.k))
 
 
+def test_accelerator_grouping_gives_the_cpu_numbers_for_the_regularised_dct(rng, monkeypatch):
+    """The weight choices (K-fold and GCV, one eigendecomposition per fold and track) vmapped
+    over the tracks as on a GPU equal the CPU's loop of unbatched calls."""
+    from jaxtraj.estimators import reconstruct_regularised_points
+
+    s, uv, w = _tracks(rng)
+    grid = np.logspace(-2, 6, 5)
+
+    def run():
+        args = (s["P"], uv, s["times"], w)
+        return [
+            reconstruct_regularised_points(*args, k=8, grid=grid, folds=3, criterion=c)
+            for c in ("kfold", "gcv")
+        ]
+
+    ref = run()
+    _as_gpu(monkeypatch)
+    got = run()
+    for (r, _, c), (g, _, d) in zip(ref, got, strict=True):
+        np.testing.assert_allclose(np.asarray(d.cv_rms_px), np.asarray(c.cv_rms_px), rtol=1e-9)
+        # 8 Lanczos steps in each eigenbasis (batched and unbatched LAPACK round apart)
+        np.testing.assert_allclose(np.asarray(d.gain), np.asarray(c.gain), rtol=0.02)
+        np.testing.assert_array_equal(np.asarray(d.lam), np.asarray(c.lam))
+        np.testing.assert_allclose(np.asarray(g.points), np.asarray(r.points), atol=1e-10)
+        np.testing.assert_array_equal(np.asarray(g.status), np.asarray(r.status))
+
+
 @pytest.mark.parametrize("accelerator", [False, True])
 def test_track_checks_on_both_paths(rng, monkeypatch, accelerator):
     s, uv, w = _tracks(rng)
