@@ -98,7 +98,7 @@ def test_kfold_curve_equals_refits_of_each_fold():
     choice = select_penalty_cv(s.P, uv, basis, s.times, w, grid=grid, folds=3)
     held = np.arange(30)[None, :] % 3 == np.arange(3)[:, None]
     direct = []
-    for lam in grid:
+    for j, lam in enumerate(grid):
         per_fold = []
         for mask in held:
             fit = jt.reconstruct(s.P, uv, Phi, np.where(mask, 0.0, w), penalty=lam * rough)
@@ -108,7 +108,6 @@ def test_kfold_curve_equals_refits_of_each_fold():
             per_fold.append(np.sqrt(np.mean(err2[mask & (w > 0)])))
         direct.append(np.mean(per_fold))
         full = jt.reconstruct(s.P, uv, Phi, w, penalty=lam * rough)
-        j = len(direct) - 1
         assert float(choice.gain[j]) == pytest.approx(float(full.gain), rel=0.02)
     np.testing.assert_allclose(choice.cv_rms_px, direct, rtol=1e-7)
 

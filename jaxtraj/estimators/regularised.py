@@ -229,11 +229,11 @@ def _points_at(Phi, diag: _Diagonal, grid):
 
 
 @eqx.filter_jit
-def _cv(P, uv, Phi, w, rough, grid, held, healthy_gain, Lg=None):
+def _cv(P, uv, Phi, w, rough, grid, held, healthy_gain):
     """K-fold choice of one track: each fold's fit at every weight from one
     eigendecomposition of its training frames (:func:`_diagonalise`), the folds in a loop
     (unbatched LAPACK calls), and the gain at every weight from that of all frames."""
-    Lg = jnp.linalg.cholesky(Phi.T @ Phi) if Lg is None else Lg
+    Lg = jnp.linalg.cholesky(Phi.T @ Phi)  # Theta^T Theta = Lg Lg^T (k x k: negligible)
 
     def held_out_rms(mask):
         X, _ = _points_at(Phi, _diagonalise(P, uv, Phi, jnp.where(mask, 0.0, w), rough), grid)
@@ -373,9 +373,8 @@ def _regularised_points(
     # cv_tracks: None (a weight per point) or the indices of the tracks whose mean
     # criterion chooses one shared weight.
     sel = slice(None) if cv_tracks is None else np.asarray(cv_tracks)
-    Lg = jnp.linalg.cholesky(Phi.T @ Phi)  # Theta^T Theta = Lg Lg^T, shared by the tracks
     choice = map_points(
-        lambda a: _cv(P, a[0], Phi, a[1], rough, grid, held, healthy_gain, Lg),
+        lambda a: _cv(P, a[0], Phi, a[1], rough, grid, held, healthy_gain),
         (uv[sel], w[sel]),
         cv_per_step,
     )
