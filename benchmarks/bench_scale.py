@@ -597,7 +597,7 @@ def vs_kernel(cfg: Config, workdir: Path, chunks: tuple[int, ...], repeats: int,
     """
     from jaxtraj import reconstruct_points
     from jaxtraj.cli import main as cli_main
-    from jaxtraj.scale.chunked import NpyRows, _solve_chunk  # run_batch's masking and kernel
+    from jaxtraj.scale.chunked import NpyRows, _solve_on_cores  # run_batch's masking, kernel
     from jaxtraj.solve import _per_step
 
     ds = workdir / "ds-vs-kernel"
@@ -680,7 +680,7 @@ def vs_kernel(cfg: Config, workdir: Path, chunks: tuple[int, ...], repeats: int,
                 chunk = np.concatenate([chunk, np.zeros((c - (b - a), cfg.F, 2), chunk.dtype)])
                 ok = np.concatenate([ok, np.zeros((c - (b - a), cfg.F), ok.dtype)])
             t.append(time.perf_counter())
-            res = block(_solve_chunk(P, basis, chunk, ok, jnp.dtype(jnp.float64), per_step))
+            res = block(_solve_on_cores(P, basis, chunk, ok, jnp.dtype(jnp.float64), per_step))
             t.append(time.perf_counter())
             res = jax.device_get(res)
             t.append(time.perf_counter())

@@ -18,15 +18,47 @@ Each driver names both sizes (``MAP_BATCH`` for the CPU and ``MAP_BATCH_ACCELERA
 :func:`points_per_step` picks one from the platform of the input data (a committed
 ``jax.Array``'s device; under tracing, or for NumPy inputs, JAX's default backend). The
 results are the same up to rounding whichever size is used.
+
+**Every core of a CPU.** XLA:CPU runs such a loop on one core: it does not run the steps,
+or two loops over halves of the points in one program, side by side. Called eagerly on a
+CPU, the drivers whose kernels call no LAPACK routine (:func:`jaxtraj.reconstruct_points`,
+:func:`jaxtraj.estimate_points`, :func:`jaxtraj.estimators.select_k_points` and the
+chunked batch runner) therefore go through :func:`on_cores`: the points are split into
+one chunk per core and the same compiled kernel runs on each chunk from its own thread
+(JAX releases the interpreter lock while a program runs). Each point's result is the same
+as in one call, up to rounding where its loop group changes (the last, padded group).
+Kernels with LAPACK calls are not split: two of them running at once on jaxlib 0.10.2
+(``refine_points``, whose Levenberg-Marquardt steps call batched QR) were seen to stop
+for good with every XLA worker idle. Under ``jit``, ``vmap`` or ``grad`` (traced inputs),
+on an accelerator, or with too few points, the kernel runs once as before;
+``JAXTRAJ_CPU_THREADS=1`` turns the split off.
 """
 
 from __future__ import annotations
 
+import functools
+import os
 from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
 
 import jax
+import jax.numpy as jnp
 
-__all__ = ["map_points", "platform_of", "points_per_step"]
+__all__ = [
+    "carried",
+    "cpu_cores",
+    "in_threads",
+    "map_points",
+    "on_cores",
+    "platform_of",
+    "points_per_step",
+]
+
+#: fewest points per chunk for which :func:`on_cores` splits a batch over the cores
+MIN_POINTS_PER_CORE = 64
+#: chunk sizes are multiples of this (the CPU group size of every driver divides it), so
+#: that a point falls in the same group of its loop as in one call over all points
+ALIGN = 8
 
 
 def platform_of(x=None) -> str:
@@ -53,3 +85,81 @@ def map_points(fn: Callable, xs, per_step: int):
     if per_step == 1:  # one point per step, not a vmap of one (no batched LAPACK call)
         return jax.lax.map(fn, xs)
     return jax.lax.map(fn, xs, batch_size=per_step)
+
+
+def cpu_cores() -> int:
+    """CPU cores this process may use, or ``JAXTRAJ_CPU_THREADS`` when set (>= 1)."""
+    env = os.environ.get("JAXTRAJ_CPU_THREADS", "").strip()
+    if env:
+        if not env.isdigit() or int(env) < 1:
+            raise ValueError(f"JAXTRAJ_CPU_THREADS: expected an integer >= 1, got {env!r}")
+        return int(env)
+    try:
+        return len(os.sched_getaffinity(0))
+    except AttributeError:  # not Linux
+        return os.cpu_count() or 1
+
+
+def carried(fn: Callable) -> Callable:
+    """``fn`` made to run, in any thread, with the calling thread's ``jax.enable_x64`` and
+    ``jax.default_device`` settings (a new thread starts with JAX's global settings, not
+    the caller's context managers)."""
+    x64, device = jax.config.jax_enable_x64, jax.config.jax_default_device
+
+    def run(*args):
+        with jax.enable_x64(x64), jax.default_device(device):
+            return fn(*args)
+
+    return run
+
+
+def in_threads(fn: Callable, args: list, workers: int) -> list:
+    """``[fn(a) for a in args]`` on a pool of ``workers`` threads, in order, each with the
+    caller's JAX settings (:func:`carried`)."""
+    with ThreadPoolExecutor(max_workers=max(1, min(workers, len(args)))) as pool:
+        return list(pool.map(carried(fn), args))
+
+
+def on_cores(kernel: Callable, points, others=(), min_per_core: int = MIN_POINTS_PER_CORE):
+    """``kernel(points)`` with the leading axis of the pytree ``points`` split over the CPU
+    cores (module notes): one chunk per core, all of one size (the last padded with copies
+    of the last point, so one compilation serves every chunk), each run from its own
+    thread, the results concatenated. ``others``: the kernel's other array arguments,
+    only checked for tracers. Runs ``kernel(points)`` once when any input is traced, the
+    data are not on a CPU, there is one core, or a chunk would hold fewer than
+    ``min_per_core`` points."""
+    leaves = jax.tree_util.tree_leaves(points)
+    n = leaves[0].shape[0]
+    cores = cpu_cores()
+    traced = any(
+        isinstance(x, jax.core.Tracer) for x in jax.tree_util.tree_leaves((points, others))
+    )
+    chunks = min(cores, n // max(min_per_core, 1))
+    if traced or chunks < 2 or platform_of(leaves[0]) != "cpu":
+        return kernel(points)
+    size = -(-n // chunks)
+    size += -size % ALIGN  # chunks start on a group boundary of the drivers' CPU loops
+    parts = _split(points, chunks, size)
+    results = in_threads(lambda p: jax.block_until_ready(kernel(p)), parts, chunks)
+    return _join(results, n)
+
+
+@functools.partial(jax.jit, static_argnums=(1, 2))
+def _split(points, chunks: int, size: int):
+    """``chunks`` chunks of ``size`` points, the last padded with copies of the last point."""
+    n = jax.tree_util.tree_leaves(points)[0].shape[0]
+    pad = size * chunks - n
+
+    def padded(x):
+        return jnp.concatenate([x, jnp.repeat(x[-1:], pad, axis=0)]) if pad else x
+
+    full = jax.tree_util.tree_map(padded, points)
+    return [
+        jax.tree_util.tree_map(lambda x, a=a: x[a : a + size], full)
+        for a in range(0, size * chunks, size)
+    ]
+
+
+@functools.partial(jax.jit, static_argnums=1)
+def _join(results, n: int):
+    return jax.tree_util.tree_map(lambda *r: jnp.concatenate(r)[:n], *results)

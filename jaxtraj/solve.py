@@ -35,7 +35,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float, Int
 
-from ._batching import map_points, points_per_step
+from ._batching import map_points, on_cores, points_per_step
 from ._checks import check_finite, check_shape, check_tracks, is_concrete
 from ._linalg import cholesky_small
 from ._spd import inverse_cholesky, matvec, top_eigenvalue, vecmat
@@ -606,7 +606,9 @@ def reconstruct_points(
     same numbers but runs every step of the factorisation over all N points in turn. On a
     GPU the points go in groups of :data:`MAP_BATCH_ACCELERATOR` (0: all at once), since
     there a loop of small groups leaves the device idle (:mod:`jaxtraj._batching`).
-    Fields of the result gain a leading axis of size N.
+    Called eagerly on a CPU with several cores, the points are split into one chunk per
+    core, each solved from its own thread (:func:`jaxtraj._batching.on_cores`; the same
+    result per point). Fields of the result gain a leading axis of size N.
     """
     batch = (jnp.shape(uv)[0] if jnp.ndim(uv) == 3 else None,)
     _validate(P, uv, basis, weights, batch=batch, count_check=penalty is None)
@@ -616,4 +618,12 @@ def reconstruct_points(
     w = jnp.ones(uv_.shape[:2], P_.dtype) if weights is None else jnp.asarray(weights, P_.dtype)
     pen = None if penalty is None else jnp.asarray(penalty, P_.dtype)
     bounds = jnp.asarray([max_gain, max_depth_uncertainty, max_relative_error], P_.dtype)
-    return _reconstruct_points(P_, uv_, basis_, w, bounds, refine, diagnostics, pen, _per_step(uv_))
+    per_step = _per_step(uv_)
+    per_point = pen is not None and pen.ndim == 2  # (N, k): split with the points
+
+    def kernel(pts):
+        u, ww, p = pts
+        p = p if per_point else pen
+        return _reconstruct_points(P_, u, basis_, ww, bounds, refine, diagnostics, p, per_step)
+
+    return on_cores(kernel, (uv_, w, pen if per_point else None), (P_, basis_, pen))

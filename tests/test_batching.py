@@ -117,3 +117,126 @@ def test_track_checks_on_both_paths(rng, monkeypatch, accelerator):
     few[4, 6:] = 0.0  # 6 observed frames: 2 * 6 < 3 * k
     with pytest.raises(ValueError, match=r"k=6 is too large for 6 observed frame"):
         jt.reconstruct_points(P, uv_d, basis, jnp.asarray(few))
+
+
+# --- every core of a CPU: on_cores ---------------------------------------------------------
+
+
+def _counting(kernel, calls):
+    def run(pts):
+        calls.append(jax.tree_util.tree_leaves(pts)[0].shape[0])
+        return kernel(pts)
+
+    return run
+
+
+def test_on_cores_splits_pads_and_joins_in_order(monkeypatch):
+    monkeypatch.setenv("JAXTRAJ_CPU_THREADS", "3")
+    xs, ys = jnp.arange(202.0), jnp.arange(404.0).reshape(202, 2)
+    calls = []
+    out = _batching.on_cores(
+        _counting(lambda p: {"a": p[0] * 2.0, "b": p[1].sum(1)}, calls), (xs, ys), min_per_core=8
+    )
+    assert calls == [72, 72, 72]  # ceil(202 / 3) = 68, aligned to 8; the last chunk padded
+    np.testing.assert_array_equal(np.asarray(out["a"]), 2.0 * np.arange(202.0))
+    np.testing.assert_array_equal(np.asarray(out["b"]), np.asarray(ys).sum(1))
+
+
+def test_on_cores_runs_once_when_traced_small_single_core_or_off_the_cpu(monkeypatch):
+    monkeypatch.setenv("JAXTRAJ_CPU_THREADS", "2")
+    xs = jnp.arange(300.0)
+    calls = []
+    kernel = _counting(lambda p: p * 2.0, calls)
+    jax.jit(lambda x: _batching.on_cores(kernel, x))(xs)  # traced points
+    jax.jit(lambda c: _batching.on_cores(lambda p: p * c, xs, (c,)))(2.0)  # traced other
+    _batching.on_cores(kernel, xs[:100])  # fewer than 2 x 64 points
+    monkeypatch.setenv("JAXTRAJ_CPU_THREADS", "1")
+    _batching.on_cores(kernel, xs)
+    monkeypatch.setenv("JAXTRAJ_CPU_THREADS", "2")
+    monkeypatch.setattr(_batching, "platform_of", lambda x=None: "gpu")
+    _batching.on_cores(kernel, xs)
+    assert calls == [300, 100, 300, 300]
+    monkeypatch.setenv("JAXTRAJ_CPU_THREADS", "0")
+    with pytest.raises(ValueError, match="JAXTRAJ_CPU_THREADS"):
+        _batching.cpu_cores()
+
+
+def test_on_cores_carries_the_callers_precision_into_its_threads(monkeypatch):
+    monkeypatch.setenv("JAXTRAJ_CPU_THREADS", "2")
+    with jax.enable_x64(False):
+        out = _batching.on_cores(lambda p: p + jnp.ones(()), np.arange(256.0), min_per_core=8)
+    assert out.dtype == jnp.float32  # a thread without the context would make float64
+
+
+def test_drivers_split_over_cores_give_the_one_call_numbers(rng, monkeypatch):
+    """reconstruct_points and estimate_points on 2 chunks from 2 threads equal one call
+    over all points, for 130 tracks (chunks of 72, the last padded)."""
+    from jaxtraj import solve
+
+    monkeypatch.setenv("JAXTRAJ_CPU_THREADS", "2")
+    s = scene(rng, F=24, k=4, noise=0.3, in_span=False)
+    n = 2 * _batching.MIN_POINTS_PER_CORE + 2
+    uv = s["uv"][None] + rng.normal(size=(n, *s["uv"].shape)) * 0.5
+    w = np.ones(uv.shape[:2])
+    w[3, ::4] = 0.0
+    kernel, calls = solve._reconstruct_points, []
+
+    def counted(P, uv, *args):
+        calls.append(uv.shape[0])
+        return kernel(P, uv, *args)
+
+    monkeypatch.setattr(solve, "_reconstruct_points", counted)
+    got = jt.reconstruct_points(s["P"], uv, s["basis"], w, penalty=np.full(4, 1e-3))
+    monkeypatch.setenv("JAXTRAJ_CPU_THREADS", "1")
+    ref = jt.reconstruct_points(s["P"], uv, s["basis"], w, penalty=np.full(4, 1e-3))
+    assert calls == [72, 72, n]
+    for name in ("coeffs", "rms_px", "gain", "depth_uncertainty"):
+        np.testing.assert_allclose(getattr(got, name), getattr(ref, name), rtol=1e-12, atol=1e-15)
+    np.testing.assert_array_equal(got.status, ref.status)
+
+    one = jt.estimate_points(s["P"], uv, s["times"], w, pixel_sigma=0.5, orders=(1,), dct_ks=())
+    monkeypatch.setenv("JAXTRAJ_CPU_THREADS", "2")
+    est = jt.estimate_points(s["P"], uv, s["times"], w, pixel_sigma=0.5, orders=(1,), dct_ks=())
+    for name in ("points", "cov", "order", "status"):
+        np.testing.assert_allclose(getattr(est, name), getattr(one, name), rtol=1e-12, atol=1e-15)
+
+
+def _lapack_calls(fn, *args) -> set:
+    import re
+
+    return set(re.findall(r"custom_call @(lapack_\w+)", fn.lower(*args).as_text()))
+
+
+def test_kernels_split_over_cores_call_no_lapack(rng):
+    """Kernels with LAPACK calls are not run from several threads (module notes of
+    jaxtraj._batching); this guards the three that are. refine_points' kernel, which does
+    call LAPACK, shows that the check sees such calls."""
+    from jaxtraj import solve
+    from jaxtraj.estimators import estimate, refine, select_k
+
+    s, uv, w = _tracks(rng)
+    P, uv, w, t, B = (jnp.asarray(a) for a in (s["P"], uv, w, s["times"], s["basis"]))
+    bounds = jnp.asarray([20.0, 0.3, 0.5])
+    opts = dict(
+        pixel_sigma=jnp.asarray(0.5),
+        iterations=3,
+        loss="l2",
+        loss_scale=jnp.asarray(2.0),
+        depth_guess=jnp.asarray(1.0),
+        criterion="ml",
+    )
+    kernels = {
+        "reconstruct_points": (solve._reconstruct_points, P, uv, B, w, bounds, 1, True, None, 8),
+        "estimate_points": (
+            jax.jit(lambda P, u, t, w: estimate._estimate(P, u, t, w, (1, 2), (4,), 0.08, opts, 8)),
+            P, uv, t, w,
+        ),
+        "select_k_points": (
+            select_k._select_k_points, P, uv, t, w, (3, 5), 2, 100.0, "gain_weighted", 20.0, 8
+        ),
+    }  # fmt: skip
+    for name, (fn, *args) in kernels.items():
+        assert _lapack_calls(fn, *args) == set(), name
+    lin = jt.reconstruct_points(P, uv, B, w)
+    lm = jax.jit(lambda c: refine._refine_points(P, uv, B, c, w, lin.status, {}))
+    assert _lapack_calls(lm, lin.coeffs)  # the check sees LAPACK where it is

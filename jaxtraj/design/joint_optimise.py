@@ -27,8 +27,6 @@ before, each round taking its 500 steps).
 from __future__ import annotations
 
 import itertools
-import os
-from concurrent.futures import ThreadPoolExecutor
 from typing import NamedTuple
 
 import equinox as eqx
@@ -37,7 +35,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
-from .._batching import platform_of
+from .._batching import cpu_cores, in_threads, platform_of
 from ..analysis import reconstructibility
 from .joint_path import (
     JOINT_CONSTRAINTS,
@@ -386,14 +384,6 @@ def _design(
 STARTS_IN = ("auto", "vmap", "threads")
 
 
-def _workers() -> int:
-    """CPU cores this process may use."""
-    try:
-        return len(os.sched_getaffinity(0))
-    except AttributeError:  # not Linux
-        return os.cpu_count() or 1
-
-
 def _run_starts(starts_in, inits, lams, H0s, *args):
     """:func:`_design` over the starts: one vectorised search (``"vmap"``), or one
     single-start search per start on a pool of threads, one per core (``"threads"``).
@@ -414,15 +404,10 @@ def _run_starts(starts_in, inits, lams, H0s, *args):
     if starts_in == "vmap" or B == 1:
         return _design(inits, lams, H0s, *args)
 
-    # a thread starts with JAX's global settings, not the caller's context managers
-    x64, device = jax.config.jax_enable_x64, jax.config.jax_default_device
-
     def one(i):
-        with jax.enable_x64(x64), jax.default_device(device):
-            return _design(inits[i : i + 1], lams[i : i + 1], H0s[i : i + 1], *args)
+        return _design(inits[i : i + 1], lams[i : i + 1], H0s[i : i + 1], *args)
 
-    with ThreadPoolExecutor(max_workers=min(_workers(), B)) as pool:
-        searches = list(pool.map(one, range(B)))
+    searches = in_threads(one, list(range(B)), cpu_cores())
     return jax.tree_util.tree_map(lambda *a: jnp.concatenate(a), *searches)
 
 

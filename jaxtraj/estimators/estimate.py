@@ -73,7 +73,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float, Int
 
-from .._batching import map_points, points_per_step
+from .._batching import map_points, on_cores, points_per_step
 from .._checks import is_concrete
 from ..depth import camera_centres, depth_uncertainty, with_ray_bound
 from ..solve import Status
@@ -295,7 +295,9 @@ def estimate_points(
     flags what the data cannot determine (see the module notes for the method).
 
     jit-, vmap- and grad-compatible (the model choice is a selection, so gradients flow
-    through the chosen fit).
+    through the chosen fit). Called eagerly on a CPU with several cores, the points are
+    split into one chunk per core, each estimated from its own thread
+    (:func:`jaxtraj._batching.on_cores`; the same result per point).
 
     Args:
         P: (F, 3, 4) projection matrices of undistorted cameras.
@@ -361,4 +363,8 @@ def estimate_points(
     )
     tau = jnp.asarray(max_depth_uncertainty, dtype)
     per_step = points_per_step(MAP_BATCH, MAP_BATCH_ACCELERATOR, uv)
-    return _estimate(P, uv, times, w, orders, dct_ks, tau, opts, per_step)
+    return on_cores(  # one chunk of points per CPU core, each from a thread (eager calls)
+        lambda a: _estimate(P, a[0], times, a[1], orders, dct_ks, tau, opts, per_step),
+        (uv, w),
+        (P, times, opts),
+    )

@@ -28,7 +28,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float, Int
 
-from .._batching import map_points, points_per_step
+from .._batching import map_points, on_cores, points_per_step
 from .._checks import check_tracks
 from .._spd import matvec, vecmat
 from ..basis import dct_basis
@@ -287,6 +287,8 @@ def select_k_points(
     bounds every candidate's gain with a few Lanczos steps: about
     ``folds * (F K^2 + 2 (3K)^3 / 3) + len(ks) * (folds + 8) * (3K)^2`` multiply-adds, no
     LAPACK call. Validated on the host like :func:`select_k_cv` (first point's track).
+    Called eagerly on a CPU with several cores, the points are split into one chunk per
+    core, each from its own thread (:func:`jaxtraj._batching.on_cores`).
     """
     if np.ndim(uv) != 3:
         raise ValueError(f"uv: expected shape (N, F, 2), got {np.shape(uv)}")
@@ -300,6 +302,7 @@ def select_k_points(
     P, uv, times, weights = as_float(P, uv, times, weights)
     w = jnp.ones(uv.shape[:2], P.dtype) if weights is None else weights
     per_step = points_per_step(MAP_BATCH, MAP_BATCH_ACCELERATOR, uv)
-    return _select_k_points(
-        P, uv, times, w, ks, folds, float(max_gain), rule, float(healthy_gain), per_step
+    args = (ks, folds, float(max_gain), rule, float(healthy_gain), per_step)
+    return on_cores(  # one chunk of points per CPU core, each from a thread (eager calls)
+        lambda a: _select_k_points(P, a[0], times, a[1], *args), (uv, w), (P, times)
     )

@@ -35,6 +35,7 @@ import functools
 import json
 import os
 from collections.abc import Callable, Iterable
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -42,6 +43,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .._batching import carried, on_cores
 from ..basis import dct_basis
 from ..solve import _per_step, _reconstruct_points
 
@@ -60,6 +62,17 @@ def _solve_chunk(P, basis, raw, weights, dtype, per_step):
     uv = jnp.where(finite[..., None], raw, 0.0).astype(dtype)
     w = jnp.where(finite, weights, 0.0).astype(dtype)
     return _reconstruct_points(P, uv, basis, w, 20.0, 1, True, None, per_step)
+
+
+def _solve_on_cores(P, basis, raw, weights, dtype, per_step):
+    """:func:`_solve_chunk` with the chunk split over the CPU cores, one part per core,
+    each solved from its own thread (:func:`jaxtraj._batching.on_cores`; one call on an
+    accelerator or for a small chunk)."""
+    return on_cores(
+        lambda a: _solve_chunk(P, basis, a[0], a[1], dtype, per_step),
+        (jnp.asarray(raw), jnp.asarray(weights)),
+        (P, basis),
+    )
 
 
 class NpyRows:
@@ -275,7 +288,8 @@ def run_batch(
     def solve(raw, w):
         if mesh is not None:
             raw, w = jax.device_put(raw, split), jax.device_put(w, split)
-        return _solve_chunk(P_d, basis, raw, w, jnp.dtype(dtype), per_step)
+            return _solve_chunk(P_d, basis, raw, w, jnp.dtype(dtype), per_step)
+        return _solve_on_cores(P_d, basis, raw, w, jnp.dtype(dtype), per_step)
 
     chunks = [i for i in range(-(-n // chunk_size)) if i % count == index]
     todo = [i for i in chunks if i not in done]
@@ -305,16 +319,18 @@ def run_batch(
         done.add(i)
         _write_progress(prog_path, meta, done)
 
-    # JAX dispatches asynchronously: chunk i + 1 is read and its solve started before the
-    # rows of chunk i are written and flushed, so reading and writing overlap the compute.
+    # Chunk i + 1 is read and its solve started (in a second thread: on a CPU the solve
+    # runs from threads of its own and returns when done) before the rows of chunk i are
+    # written and flushed, so reading and writing overlap the compute.
     t0 = time.perf_counter()
     pending = None
     try:
-        for i in steps:
-            result = (i, solve(*load(i)))
-            if pending is not None:
-                store(*pending)
-            pending = result
+        with ThreadPoolExecutor(max_workers=1) as solver:
+            for i in steps:
+                result = solver.submit(carried(solve), *load(i))
+                if pending is not None:
+                    store(*pending)
+                pending = (i, result.result())
         if pending is not None:
             store(*pending)
     finally:
