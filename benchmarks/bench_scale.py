@@ -737,7 +737,8 @@ def vs_kernel_report(raw: dict, command: str, machine_start: str, machine_end: s
             "public `reconstruct_points` with status on inputs already in memory; "
             "`run_batch` reads the tracks from disk, pads the last chunk, solves, writes the "
             "five output files, fsyncs them and records the chunk, with the next chunk's "
-            "solve dispatched before the previous chunk is written.",
+            "solve started (in a second thread) before the previous chunk is written. On a "
+            "CPU both split each call's points over the cores (one thread per core).",
             "",
             markdown_table(["path", "chunk", "points/s", "us/point", "vs best kernel"], rows),
             "",
