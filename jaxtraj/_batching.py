@@ -22,8 +22,9 @@ results are the same up to rounding whichever size is used.
 **Every core of a CPU.** XLA:CPU runs such a loop on one core: it does not run the steps,
 or two loops over halves of the points in one program, side by side. Called eagerly on a
 CPU, the drivers whose kernels call no LAPACK routine (:func:`jaxtraj.reconstruct_points`,
-:func:`jaxtraj.estimate_points`, :func:`jaxtraj.estimators.select_k_points` and the
-chunked batch runner) therefore go through :func:`on_cores`: the points are split into
+:func:`jaxtraj.estimate_points`, :func:`jaxtraj.estimators.select_k_points`, the fits
+of :func:`jaxtraj.estimators.reconstruct_regularised_points` once its weights are chosen,
+and the chunked batch runner) therefore go through :func:`on_cores`: the points are split into
 one chunk per core and the same compiled kernel runs on each chunk from its own thread
 (JAX releases the interpreter lock while a program runs). Each point's result is the same
 as in one call, up to rounding where its loop group changes (the last, padded group).

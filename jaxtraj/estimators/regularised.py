@@ -53,7 +53,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float, Int
 
-from .._batching import map_points, points_per_step
+from .._batching import map_points, on_cores, points_per_step
 from .._checks import check_finite, check_shape, check_tracks, is_concrete
 from .._linalg import cholesky_small, solve_triangular_small
 from .._spd import top_eigenvalue
@@ -364,28 +364,19 @@ MAX_GAIN = 20.0
 CRITERIA = ("kfold", "gcv")
 
 
-@functools.partial(
-    jax.jit, static_argnames=("healthy_gain", "cv_tracks", "cv_per_step", "per_step")
-)
-def _regularised_points(
-    P, uv, Phi, w, rough, grid, held, healthy_gain, cv_tracks, cv_per_step, per_step
-):
-    # cv_tracks: None (a weight per point) or the indices of the tracks whose mean
-    # criterion chooses one shared weight.
+@functools.partial(jax.jit, static_argnames=("healthy_gain", "cv_tracks", "cv_per_step"))
+def _kfold_choice(P, uv, Phi, w, rough, grid, held, healthy_gain, cv_tracks, cv_per_step):
+    """K-fold choice per track, or (``cv_tracks``: indices of the tracks whose mean
+    criterion decides) one shared weight; the fits are left to the solver, which can then
+    run on every core (:func:`jaxtraj._batching.on_cores`; this choice calls LAPACK and
+    runs once)."""
     sel = slice(None) if cv_tracks is None else np.asarray(cv_tracks)
     choice = map_points(
         lambda a: _cv(P, a[0], Phi, a[1], rough, grid, held, healthy_gain),
         (uv[sel], w[sel]),
         cv_per_step,
     )
-    if cv_tracks is None:
-        lam = choice.lam
-    else:
-        choice = _shared(choice, grid, cv_tracks)
-        lam = jnp.broadcast_to(choice.lam[0], uv.shape[:1])
-    pen = lam[:, None] * rough[None, :]
-    max_gain = jnp.asarray(MAX_GAIN, P.dtype)
-    return _reconstruct_points(P, uv, Phi, w, max_gain, 1, True, pen, per_step), choice
+    return choice if cv_tracks is None else _shared(choice, grid, cv_tracks)
 
 
 def _shared(choice: PenaltyChoice, grid, cv_tracks) -> PenaltyChoice:
@@ -487,8 +478,9 @@ def reconstruct_regularised_points(
     criterion: str = "kfold",
     max_rms_px: float = MAX_RMS_PX,
 ) -> tuple[Reconstruction, DCTBasis, PenaltyChoice | None]:
-    """:func:`reconstruct_regularised` for N points seen by the same cameras, in one
-    compiled program per shape.
+    """:func:`reconstruct_regularised` for N points seen by the same cameras: one compiled
+    program per shape for the weight's choice (LAPACK eigendecompositions, one call) and
+    one for the fits (on a CPU split over the cores, :func:`jaxtraj._batching.on_cores`).
 
     The penalty weight is chosen by cross-validation per point (``shared=False``), or once
     for all points (``shared=True``: the grid value with the smallest criterion averaged
@@ -547,10 +539,15 @@ def reconstruct_regularised_points(
     def flagged(res, choice):
         return flag_undetermined_depth(res, P, times, order, max_rms_px=max_rms_px), basis, choice
 
-    def solved(pen, choice):  # every point with the penalty ``pen`` (k,)
-        res = _reconstruct_points(
-            P, uv, Phi, w, jnp.asarray(MAX_GAIN, dtype), 1, True, pen, per_step
-        )
+    def solved(pen, choice):  # every point with the penalty ``pen``: shared (k,) or (N, k)
+        split = pen.ndim == 2  # one per point: split with the points
+
+        def kernel(a):
+            p = a[2] if split else pen
+            return _reconstruct_points(P, a[0], Phi, a[1], max_gain, 1, True, p, per_step)
+
+        max_gain = jnp.asarray(MAX_GAIN, dtype)
+        res = on_cores(kernel, (uv, w, pen if split else None), (P, Phi, pen))
         return flagged(res, choice)
 
     if lam is not None:
@@ -573,8 +570,7 @@ def reconstruct_regularised_points(
         choice = _shared(choice, grid, tracks)
         return solved(choice.lam[0] * rough, choice)
     cv_per_step = points_per_step(CV_BATCH, CV_BATCH_ACCELERATOR, uv)
-    return flagged(
-        *_regularised_points(
-            P, uv, Phi, w, rough, grid, held, healthy, tracks, cv_per_step, per_step
-        )
-    )
+    choice = _kfold_choice(P, uv, Phi, w, rough, grid, held, healthy, tracks, cv_per_step)
+    lam = choice.lam if tracks is None else choice.lam[:1]  # per point, or the shared one
+    pen = lam[:, None] * rough[None, :]
+    return solved(pen if tracks is None else pen[0], choice)
