@@ -163,4 +163,5 @@ def _split(points, chunks: int, size: int):
 
 @functools.partial(jax.jit, static_argnums=1)
 def _join(results, n: int):
+    """The chunks' results concatenated in order, without the padding."""
     return jax.tree_util.tree_map(lambda *r: jnp.concatenate(r)[:n], *results)

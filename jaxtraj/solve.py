@@ -618,12 +618,18 @@ def reconstruct_points(
     w = jnp.ones(uv_.shape[:2], P_.dtype) if weights is None else jnp.asarray(weights, P_.dtype)
     pen = None if penalty is None else jnp.asarray(penalty, P_.dtype)
     bounds = jnp.asarray([max_gain, max_depth_uncertainty, max_relative_error], P_.dtype)
-    per_step = _per_step(uv_)
-    per_point = pen is not None and pen.ndim == 2  # (N, k): split with the points
+    return _points_on_cores(P_, uv_, basis_, w, bounds, refine, diagnostics, pen, _per_step(uv_))
+
+
+def _points_on_cores(P, uv, basis, weights, bounds, refine, diagnostics, penalty, per_step):
+    """:func:`_reconstruct_points` through :func:`jaxtraj._batching.on_cores`: on a CPU one
+    chunk of points per core; a penalty per point (N, k) is split with the points, a
+    shared one (k,) is not."""
+    per_point = penalty is not None and penalty.ndim == 2
 
     def kernel(pts):
-        u, ww, p = pts
-        p = p if per_point else pen
-        return _reconstruct_points(P_, u, basis_, ww, bounds, refine, diagnostics, p, per_step)
+        u, w, p = pts
+        p = p if per_point else penalty
+        return _reconstruct_points(P, u, basis, w, bounds, refine, diagnostics, p, per_step)
 
-    return on_cores(kernel, (uv_, w, pen if per_point else None), (P_, basis_, pen))
+    return on_cores(kernel, (uv, weights, penalty if per_point else None), (P, basis, penalty))

@@ -53,7 +53,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float, Int
 
-from .._batching import map_points, on_cores, points_per_step
+from .._batching import map_points, points_per_step
 from .._checks import check_finite, check_shape, check_tracks, is_concrete
 from .._linalg import cholesky_small, solve_triangular_small
 from .._spd import top_eigenvalue
@@ -67,8 +67,8 @@ from ..solve import (
     _frame_blocks,
     _frame_spread,
     _per_step,
+    _points_on_cores,
     _ray_checks,
-    _reconstruct_points,
     _reprojection_rms,
     _status,
     reconstruct,
@@ -540,14 +540,8 @@ def reconstruct_regularised_points(
         return flag_undetermined_depth(res, P, times, order, max_rms_px=max_rms_px), basis, choice
 
     def solved(pen, choice):  # every point with the penalty ``pen``: shared (k,) or (N, k)
-        split = pen.ndim == 2  # one per point: split with the points
-
-        def kernel(a):
-            p = a[2] if split else pen
-            return _reconstruct_points(P, a[0], Phi, a[1], max_gain, 1, True, p, per_step)
-
         max_gain = jnp.asarray(MAX_GAIN, dtype)
-        res = on_cores(kernel, (uv, w, pen if split else None), (P, Phi, pen))
+        res = _points_on_cores(P, uv, Phi, w, max_gain, 1, True, pen, per_step)
         return flagged(res, choice)
 
     if lam is not None:
@@ -571,6 +565,6 @@ def reconstruct_regularised_points(
         return solved(choice.lam[0] * rough, choice)
     cv_per_step = points_per_step(CV_BATCH, CV_BATCH_ACCELERATOR, uv)
     choice = _kfold_choice(P, uv, Phi, w, rough, grid, held, healthy, tracks, cv_per_step)
-    lam = choice.lam if tracks is None else choice.lam[:1]  # per point, or the shared one
-    pen = lam[:, None] * rough[None, :]
-    return solved(pen if tracks is None else pen[0], choice)
+    if tracks is None:
+        return solved(choice.lam[:, None] * rough[None, :], choice)  # a weight per point
+    return solved(choice.lam[0] * rough, choice)
