@@ -13,8 +13,10 @@ from jaxtraj.design import (
     plausible_trajectories,
     smoother_error_terms,
 )
+from jaxtraj.design import smoother_error as se
 from jaxtraj.design.objectives import project_points
 from jaxtraj.estimators import smooth_points
+from jaxtraj.estimators.smoothness import _argmin_log
 from jaxtraj.sim import following_camera, orbit_camera, random_discontinuous_camera
 
 F, T, SIGMA, DRAWS = 30, 6.0, 0.5, 200
@@ -139,3 +141,27 @@ def test_bad_arguments(scene):
         expected_smoother_errors_for_cameras(P, x, times, SIGMA)
     with pytest.raises(ValueError, match="times"):
         expected_smoother_errors_for_cameras(P, x[None], times[::-1], SIGMA)
+
+
+def test_coarse_to_fine_density_search_finds_the_full_grids_density(scene):
+    """The density search reads 7 of the 10 grid values; on camera paths from fast to
+    degenerate and for every order it picks the full grid's density, so the predicted
+    errors are the same; and on any grid profile with one minimum, wherever that lies
+    (the ends included), it hands the parabola the full grid's three values."""
+    times, x, paths = scene
+    for name, P in paths.items():
+        for order in (1, 2, 3):
+            fast = se._terms(P, x, times, SIGMA, order, None)
+            full = se._terms(P, x, times, SIGMA, order, None, full_grid=True)
+            for a, b in zip(fast, full, strict=True):
+                np.testing.assert_allclose(a, b, rtol=1e-12, err_msg=f"{name}, order {order}")
+    grid = jnp.asarray(10.0 ** np.arange(-4.0, 5.01, 1.0))
+
+    def lookup(values):
+        return lambda q: values[jnp.searchsorted(grid, q)]
+
+    for best in range(grid.shape[0]):
+        values = jnp.asarray((np.arange(grid.shape[0]) - best - 0.3) ** 2)
+        searched = se._coarse_to_fine(lookup(values), grid)
+        assert np.sum(np.isfinite(searched)) <= 7
+        assert float(_argmin_log(grid, searched)) == float(_argmin_log(grid, values))

@@ -24,8 +24,11 @@ error has two parts, both exact for the linearised model:
 ``q`` is the one the estimator would choose: the minimiser of the expected marginal
 likelihood of the noisy pixels over :func:`jaxtraj.estimators.default_psd_grid` (the
 noise-free value plus the expected noise term ``-tr(D^-1 H)``), refined by a parabola in
-``log q``, held fixed for gradients. Everything is O(F) per trajectory and differentiable
-with respect to the cameras.
+``log q``, held fixed for gradients. The criterion is evaluated on every other grid point
+and then on the two neighbours of the best (7 of the 10 decades; :func:`_coarse_to_fine`),
+which gives the full grid's ``q`` wherever the criterion has one minimum along the grid and
+made the design's objective with its gradient 3.09 -> 2.58 ms (F = 60, 3 trajectories).
+Everything is O(F) per trajectory and differentiable with respect to the cameras.
 """
 
 from __future__ import annotations
@@ -75,13 +78,13 @@ def smoother_error_terms(
     return _terms(P, jnp.asarray(x, dtype), jnp.asarray(times, dtype), pixel_sigma, order, psd)
 
 
-@functools.partial(jax.jit, static_argnames=("order",))
-def _terms(P, x, times, pixel_sigma, order, process_psd):
+@functools.partial(jax.jit, static_argnames=("order", "full_grid"))
+def _terms(P, x, times, pixel_sigma, order, process_psd, full_grid=False):
     """The traceable body of :func:`smoother_error_terms` (one compiled program when
-    called on its own; inlined under an outer jit)."""
+    called on its own; inlined under an outer jit). ``full_grid``: evaluate the density's
+    criterion on the whole grid instead of :func:`_coarse_to_fine` (a reference)."""
     dtype = P.dtype
     F = x.shape[0]
-    s = 3 * order
     Pn = normalise_cameras(P)
     uv = project_points(Pn, x)
     ww = jnp.full(F, 1.0, dtype) / jnp.asarray(pixel_sigma, dtype) ** 2
@@ -92,17 +95,13 @@ def _terms(P, x, times, pixel_sigma, order, process_psd):
 
     if process_psd is None:
         grid = jnp.asarray(default_psd_grid(order), dtype) * qscale
-
         # the density is held fixed for gradients: its search sees no tangents
-        Hs, gs, cs = jax.lax.stop_gradient((H, g, c))
+        blocks = jax.lax.stop_gradient((H, g, c))
 
-        def expected_neg2_log_evidence(q):
-            D, E, b = _assemble(Hs, gs, A, Qinv, 1 / q, order)
-            chol, y = bt.factor_forward(D, E, b)
-            edf = jnp.einsum("fij,fji->", Hs, bt.diag_inverse(chol)[:, :3, :3])
-            return cs - jnp.sum(y * y) - edf + bt.logdet(chol) + (F - 1) * s * jnp.log(q)
+        def criterion(qs):
+            return jax.vmap(lambda q: _expected_neg2_log_evidence(blocks, A, Qinv, q, order))(qs)
 
-        q = _argmin_log(grid, jax.vmap(expected_neg2_log_evidence)(grid))
+        q = _argmin_log(grid, criterion(grid) if full_grid else _coarse_to_fine(criterion, grid))
     else:
         q = process_psd * qscale
 
@@ -114,6 +113,35 @@ def _terms(P, x, times, pixel_sigma, order, process_psd):
     cov = bt.diag_sandwich(chol, H)
     noise_var = jnp.trace(cov[:, :3, :3], axis1=1, axis2=2)
     return bias2, noise_var, q / qscale
+
+
+def _expected_neg2_log_evidence(blocks, A, Qinv, q, order):
+    """Expected -2 log marginal likelihood of the noisy pixels at the density ``q`` (in the
+    smoother's time unit): the noise-free value plus the expected noise term
+    ``-tr(D^-1 H)``; ``blocks``: the Gauss-Newton ``(H, g, c)`` at the true trajectory."""
+    H, g, c = blocks
+    F = H.shape[0]
+    D, E, b = _assemble(H, g, A, Qinv, 1 / q, order)
+    chol, y = bt.factor_forward(D, E, b)
+    edf = jnp.einsum("fij,fji->", H, bt.diag_inverse(chol)[:, :3, :3])
+    return c - jnp.sum(y * y) - edf + bt.logdet(chol) + (F - 1) * 3 * order * jnp.log(q)
+
+
+def _coarse_to_fine(values_at, grid):
+    """``values_at(grid)`` where it decides :func:`_argmin_log`'s answer, ``inf`` elsewhere.
+
+    The criterion is evaluated on every other grid point, then on the two neighbours of
+    the smallest of those: 7 instead of 10 evaluations on the default grid. Where the
+    values along the grid fall to one minimum and rise after it (checked on the design's
+    camera paths in the tests), the smallest value and its two neighbours, all that
+    :func:`_argmin_log` reads, are those of the full grid, so ``q`` is the same.
+    """
+    n = grid.shape[0]
+    coarse = np.arange(0, n, 2)
+    values = jnp.full(n, jnp.inf, grid.dtype).at[coarse].set(values_at(grid[coarse]))
+    j = 2 * jnp.argmin(values[coarse])
+    near = jnp.clip(jnp.stack([j - 1, j + 1]), 0, n - 1)
+    return values.at[near].set(values_at(grid[near]))
 
 
 def expected_smoother_errors_for_cameras(
