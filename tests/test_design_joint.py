@@ -287,9 +287,9 @@ def test_design_program_evaluates_objective_and_constraints_at_one_place(scene, 
     for name in traced:
         original = getattr(jo._Problem, name)
 
-        def counted(self, theta, original=original, name=name):
+        def counted(self, theta, *hints, original=original, name=name):
             traced[name] += 1
-            return original(self, theta)
+            return original(self, theta, *hints)
 
         monkeypatch.setattr(jo._Problem, name, counted)
     rhos = jnp.ones(3)
@@ -354,7 +354,9 @@ def test_design_ends_where_the_objective_is_not_finite(scene, monkeypatch):
     from jaxtraj.design import joint_optimise as jo
 
     monkeypatch.setattr(
-        jo._Problem, "objective", lambda self, theta: (jnp.nan * jnp.sum(theta), jnp.zeros(3))
+        jo._Problem,
+        "objective",
+        lambda self, theta, hints: (jnp.nan * jnp.sum(theta), jnp.zeros(3), hints),
     )
     model = JointPathModel.create(scene["times"], scene["q0"], n_control=8, grid_per_image=2)
     inits = jnp.zeros((1, *model.shape))

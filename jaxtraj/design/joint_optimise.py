@@ -47,7 +47,7 @@ from .joint_path import (
 )
 from .objectives import _metrics, _sample_errors
 from .pose_error import _checked_layout, _pose_metrics, _sample_covariances
-from .smoother_error import _frame_errors2 as _smoother_frame_errors2
+from .smoother_error import frame_errors2_hinted as _smoother_frame_errors2
 
 __all__ = [
     "JointPathDesign",
@@ -139,42 +139,52 @@ class _Problem(eqx.Module):
         T_w_c = camera_poses(self.cell, self.model.joints_at_images(theta))
         return projection_matrices(self.cell, T_w_c)
 
-    def _frame_terms(self, theta):
+    def _frame_terms(self, theta, hints=None):
         """Per sample and frame: expected squared errors (S, F), or for the pose estimator
-        the point covariances (S, F, 3, 3)."""
+        the point covariances (S, F, 3, 3); and the (S,) grid indices of the smoother's
+        noise densities (``hints`` as returned for an earlier ``theta``, or None: they
+        change the work, not the result; see
+        :func:`jaxtraj.design.smoother_error.frame_errors2_hinted`; zeros for the other
+        estimators)."""
         P = self._cameras(theta)
+        none = jnp.zeros(self.samples.shape[0], jnp.int32)
         if self.estimator == "dct":
-            return _sample_errors(P, self.samples, self.basis, self.pixel_sigma)
+            return _sample_errors(P, self.samples, self.basis, self.pixel_sigma), none
         if self.estimator == "pose":
-            return _sample_covariances(
+            covs = _sample_covariances(
                 P, self.samples, self.R_w_o, self.layout, self.point, self.pixel_sigma
             )
+            return covs, none
         order = int(self.estimator[-1])
-        return _smoother_frame_errors2(P, self.samples, self.model.times, self.pixel_sigma, order)
+        times = self.model.times
+        return _smoother_frame_errors2(P, self.samples, times, self.pixel_sigma, order, hints)
 
     def _errors_from(self, terms):
         return _pose_metrics(terms) if self.estimator == "pose" else _metrics(terms)
 
-    def report_errors(self, theta):
+    def report_errors(self, theta, hints=None):
         """``(rms, mean, worst)`` [m]: the worst is ``max sqrt(E|x_hat - x|^2)`` over the
-        samples and frames (reported, not designed for); one evaluation of the frames."""
-        terms = self._frame_terms(theta)
+        samples and frames (reported, not designed for); one evaluation of the frames.
+        With ``hints`` (see :meth:`_frame_terms`), also the new hints."""
+        terms, found = self._frame_terms(theta, hints)
         e2 = jnp.trace(terms, axis1=-2, axis2=-1) if self.estimator == "pose" else terms
         worst = jnp.sqrt(jnp.max(jnp.where(jnp.isnan(e2), jnp.inf, e2)))
-        return (*self._errors_from(terms), worst)
+        errors = (*self._errors_from(terms), worst)
+        return errors if hints is None else (errors, found)
 
-    def objective(self, theta):
-        """The objective (minimised) and the (3,) expected errors ``(rms, mean, worst)``
-        [m] of :meth:`report_errors` from the same evaluation of the frames, so that the
-        design's report needs no second program; NaN for ``eta``, which does not compute
-        them (its report comes from :func:`_evaluate`)."""
+    def objective(self, theta, hints):
+        """The objective (minimised), the (3,) expected errors ``(rms, mean, worst)`` [m]
+        of :meth:`report_errors` from the same evaluation of the frames, so that the
+        design's report needs no second program (NaN for ``eta``, which does not compute
+        them: its report comes from :func:`_evaluate`), and the hints for the next
+        evaluation (see :meth:`_frame_terms`)."""
         if self.kind == "eta":  # maximise the geometric mean of eta over the samples
             c = camera_poses(self.cell, self.model.joints_at_images(theta))[:, :3, 3]
             etas = jax.vmap(lambda x: reconstructibility(c, x, self.basis))(self.samples)
-            return -jnp.mean(jnp.log(etas)), jnp.full(3, jnp.nan, theta.dtype)
-        rms, mean, worst = self.report_errors(theta)
+            return -jnp.mean(jnp.log(etas)), jnp.full(3, jnp.nan, theta.dtype), hints
+        (rms, mean, worst), found = self.report_errors(theta, hints)
         value = jnp.log(mean if self.kind == "mean_error" else rms)
-        return value, jnp.stack([rms, mean, worst])
+        return value, jnp.stack([rms, mean, worst]), found
 
     def constraint_values(self, theta):
         """The unmargined values per constraint (see :func:`joint_constraint_values`)."""
@@ -222,6 +232,7 @@ class _Search(NamedTuple):
     g: Float[Array, " n"]  # its gradient
     c: Float[Array, " G"]  # the constraint values there
     err: Float[Array, " 3"]  # the expected errors there (see _Problem.objective)
+    hints: Int[Array, " S"]  # the objective's hints from the last evaluation (its work only)
     H: Float[Array, "n n"]  # inverse Hessian estimate
     p: Float[Array, " n"]  # search direction
     alpha: Float[Array, ""]  # step along p tried next
@@ -232,14 +243,14 @@ class _Search(NamedTuple):
     done: Bool[Array, ""]
 
 
-def _lagrangian(x, lam, rho, problem, shape):
+def _lagrangian(x, lam, rho, problem, shape, hints):
     """Augmented Lagrangian of the flattened parameters, and (the constraint values, the
-    expected errors)."""
+    expected errors, the objective's hints for the next evaluation)."""
     theta = x.reshape(shape)
     g = problem.constraints(theta)
     shifted = jnp.maximum(lam + rho * g, 0.0)
-    f, err = problem.objective(theta)
-    return f + jnp.sum(shifted**2 - lam**2) / (2 * rho), (g, err)
+    f, err, hints = problem.objective(theta, hints)
+    return f + jnp.sum(shifted**2 - lam**2) / (2 * rho), (g, err, hints)
 
 
 @eqx.filter_jit
@@ -280,7 +291,7 @@ def _design(
         search = s.phase == _SEARCH
         rho = jnp.where(s.phase == _CHECK, jnp.asarray(RHO_CHECK, dtype), rhos[s.i])
         xt = jnp.where(search, s.x + s.alpha * s.p, s.x)
-        (ft, (ct, et)), gt = value_grad(xt, s.lam, rho, problem, shape)
+        (ft, (ct, et, ht)), gt = value_grad(xt, s.lam, rho, problem, shape, s.hints)
         finite = jnp.isfinite(ft) & jnp.all(jnp.isfinite(gt))
         slope = s.g @ s.p
         armijo = search & finite & (ft <= s.f + ARMIJO * s.alpha * slope)
@@ -338,6 +349,7 @@ def _design(
             g=g,
             c=c,
             err=err,
+            hints=ht,
             H=H,
             p=p,
             alpha=alpha,
@@ -360,6 +372,7 @@ def _design(
             g=jnp.zeros(n, dtype),
             c=jnp.zeros_like(lam0),
             err=jnp.zeros(3, dtype),
+            hints=jnp.full(problem.samples.shape[0], -1, jnp.int32),
             H=eye,
             p=jnp.zeros(n, dtype),
             alpha=jnp.ones((), dtype),

@@ -25,8 +25,9 @@ error has two parts, both exact for the linearised model:
 likelihood of the noisy pixels over :func:`jaxtraj.estimators.default_psd_grid` (the
 noise-free value plus the expected noise term ``-tr(D^-1 H)``), refined by a parabola in
 ``log q``, held fixed for gradients. The criterion is evaluated on 8 of the 10 decades,
-found in two passes (:func:`_coarse_to_fine`), which gives the full grid's ``q`` wherever
-the criterion has one minimum along the grid.
+found in two passes, or on 4 about a hint (the decade found for nearby cameras: the design
+passes the last evaluation's), which gives the full grid's ``q`` wherever the criterion
+has one minimum along the grid (:func:`_search_density`).
 Everything is O(F) per trajectory and differentiable with respect to the cameras.
 """
 
@@ -81,7 +82,26 @@ def smoother_error_terms(
 def _terms(P, x, times, pixel_sigma, order, process_psd, full_grid=False):
     """The traceable body of :func:`smoother_error_terms` (one compiled program when
     called on its own; inlined under an outer jit). ``full_grid``: evaluate the density's
-    criterion on the whole grid instead of :func:`_coarse_to_fine` (a reference)."""
+    criterion on the whole grid instead of :func:`_search_density` (a reference)."""
+    setup = _setup(P, x, times, pixel_sigma, order)
+    grid, qscale = setup[-2:]
+    if process_psd is None:
+        criterion = _criterion(setup, order)
+        if full_grid:
+            values = criterion(grid)
+        else:
+            values = _search_density(lambda idx: criterion(grid[idx[0]])[None], grid, 1)[0]
+        q = _argmin_log(grid, values)
+    else:
+        q = process_psd * qscale
+    bias2, noise_var = _errors_at(setup, x, q, order)
+    return bias2, noise_var, q / qscale
+
+
+def _setup(P, x, times, pixel_sigma, order):
+    """What the errors of one trajectory ``x`` need: the Gauss-Newton blocks ``(H, g, c)``
+    of its pixels, the prior's transition ``(A, Qinv)`` in the smoother's time unit, the
+    density grid in that unit and the unit's scale of the density."""
     dtype = P.dtype
     F = x.shape[0]
     Pn = normalise_cameras(P)
@@ -91,27 +111,32 @@ def _terms(P, x, times, pixel_sigma, order, process_psd, full_grid=False):
     tau = (times[-1] - times[0]) / (F - 1)  # the smoother's time unit
     A, Qinv = _transition(jnp.diff(times) / tau, order)
     qscale = tau ** (2 * order - 1)
+    grid = jnp.asarray(default_psd_grid(order), dtype) * qscale
+    return H, g, c, A, Qinv, grid, qscale
 
-    if process_psd is None:
-        grid = jnp.asarray(default_psd_grid(order), dtype) * qscale
-        # the density is held fixed for gradients: its search sees no tangents
-        blocks = jax.lax.stop_gradient((H, g, c))
 
-        def criterion(qs):
-            return jax.vmap(lambda q: _expected_neg2_log_evidence(blocks, A, Qinv, q, order))(qs)
+def _criterion(setup, order):
+    """The density's criterion at a vector of densities (in the smoother's time unit),
+    held fixed for gradients: its search sees no tangents."""
+    H, g, c, A, Qinv = setup[:5]
+    blocks = jax.lax.stop_gradient((H, g, c))
 
-        q = _argmin_log(grid, criterion(grid) if full_grid else _coarse_to_fine(criterion, grid))
-    else:
-        q = process_psd * qscale
+    def values(qs):
+        return jax.vmap(lambda q: _expected_neg2_log_evidence(blocks, A, Qinv, q, order))(qs)
 
+    return values
+
+
+def _errors_at(setup, x, q, order):
+    """Squared bias and noise variance per frame of the smoother at the density ``q``."""
+    H, g, _, A, Qinv = setup[:5]
     D, E, b = _assemble(H, g, A, Qinv, 1 / q, order)
     chol = bt.factor(D, E)
     z = bt.solve(chol, b)
     bias2 = jnp.sum((z[:, :3] - x) ** 2, axis=1)
     # noise: the covariance of D^-1 J^T W eps is D^-1 H D^-1, its diagonal blocks in O(F)
     cov = bt.diag_sandwich(chol, H)
-    noise_var = jnp.trace(cov[:, :3, :3], axis1=1, axis2=2)
-    return bias2, noise_var, q / qscale
+    return bias2, jnp.trace(cov[:, :3, :3], axis1=1, axis2=2)
 
 
 def _expected_neg2_log_evidence(blocks, A, Qinv, q, order):
@@ -126,30 +151,54 @@ def _expected_neg2_log_evidence(blocks, A, Qinv, q, order):
     return c - jnp.sum(y * y) - edf + bt.logdet(chol) + (F - 1) * 3 * order * jnp.log(q)
 
 
-def _coarse_to_fine(values_at, grid):
-    """``values_at(grid)`` where it decides :func:`_argmin_log`'s answer, ``inf`` elsewhere.
+#: the decades a first pass reads about a hint: its two neighbours and one more, as many as
+#: the coarse passes (so every pass is the same program: one copy of the criterion)
+_NEAR_HINT = (-1, 0, 1, 2)
+_AROUND = (-2, -1, 1, 2)  # the second coarse pass, about the first's best
 
-    Two passes of four evaluations: every third grid point and the last, then the two
-    points either side of the smallest of those (8 instead of 10 evaluations on the
-    default grid). Where the values along the grid fall to one minimum and rise after it
-    (checked on camera paths from fast to degenerate in the tests), that minimum lies
-    within two points of the first pass's smallest, so the minimum and its two
-    neighbours, all that :func:`_argmin_log` reads, are those of the full grid and ``q``
-    is the same. The passes are one loop, so a program holds the criterion once (two
-    copies of it made the design's program compile 1.9 s longer).
+
+def _search_density(values_at, grid, n_samples, hints=None):
+    """The density criterion of ``n_samples`` trajectories where it decides
+    :func:`_argmin_log`'s answer, ``inf`` elsewhere: (S, n) values.
+
+    ``values_at(idx)`` evaluates the criterion of every trajectory at its own grid indices
+    ``idx`` (S, 4). Up to three passes of 4 evaluations, in one loop (so a program holds the
+    criterion once):
+
+    0. with ``hints`` (S,) (grid indices, e.g. those of nearby cameras): the hint, its
+       neighbours and one more. Where every trajectory's value at its hint is strictly below
+       both neighbours, the search stops: wherever the criterion has one minimum along the
+       grid, that is it (4 evaluations).
+    1. every third decade and the last;
+    2. the two decades either side of pass 1's best: wherever the criterion has one
+       minimum along the grid, it lies within two decades of pass 1's best, so the minimum
+       and its two neighbours, all that :func:`_argmin_log` reads, are those of the full
+       grid (8 of the 10 evaluations of the default grid).
+
+    A hint changes how much is computed, not the answer.
     """
     n = grid.shape[0]
     coarse = np.unique(np.append(np.arange(0, n, 3), n - 1))
-    width = max(coarse.size, 4)
-    first = jnp.asarray(np.resize(coarse, width))  # repeats fill a short first pass
-    around = jnp.asarray(np.resize([-2, -1, 1, 2], width))
+    first = jnp.broadcast_to(jnp.asarray(np.resize(coarse, 4)), (n_samples, 4))
+    if hints is None:
+        near, start = first, 1
+    else:
+        hint = jnp.clip(hints, 1, n - 2)[:, None]
+        near, start = jnp.clip(hint + jnp.asarray(_NEAR_HINT), 0, n - 1), 0
 
-    def one_pass(i, values):
-        j = jnp.asarray(coarse)[jnp.argmin(values[coarse])]
-        idx = jnp.where(i == 0, first, jnp.clip(j + around, 0, n - 1))
-        return values.at[idx].set(values_at(grid[idx]))
+    def one_pass(state):
+        p, values, _ = state
+        j = jnp.asarray(coarse)[jnp.argmin(values[:, coarse], axis=1)]
+        around = jnp.clip(j[:, None] + jnp.asarray(_AROUND), 0, n - 1)
+        idx = jnp.where(p == 0, near, jnp.where(p == 1, first, around))
+        got = values_at(idx)
+        got = jnp.where(jnp.isfinite(got), got, jnp.inf)
+        values = jax.vmap(lambda v, i, u: v.at[i].set(u))(values, idx, got)
+        at_hint = jnp.all((got[:, 1] < got[:, 0]) & (got[:, 1] < got[:, 2]))
+        return p + 1, values, ((p == 0) & at_hint) | (p == 2)
 
-    return jax.lax.fori_loop(0, 2, one_pass, jnp.full(n, jnp.inf, grid.dtype))
+    state = (jnp.asarray(start), jnp.full((n_samples, n), jnp.inf, grid.dtype), jnp.asarray(False))
+    return jax.lax.while_loop(lambda st: ~st[2], one_pass, state)[1]
 
 
 def expected_smoother_errors_for_cameras(
@@ -182,9 +231,26 @@ def expected_smoother_errors_for_cameras(
 @functools.partial(jax.jit, static_argnames=("order",))
 def _frame_errors2(P, samples, times, pixel_sigma, order):
     """(S, F) expected squared error per sample and frame, ``bias^2 + var``."""
+    return frame_errors2_hinted(P, samples, times, pixel_sigma, order, None)[0]
 
-    def one(x):
-        bias2, var, _ = _terms(P, x, times, pixel_sigma, order, None)
+
+def frame_errors2_hinted(P, samples, times, pixel_sigma, order, hints):
+    """:func:`_frame_errors2` with each sample's density searched first about ``hints``
+    (S,) (grid indices, e.g. those this returned for nearby cameras; None: no hint; see
+    :func:`_search_density`), and the indices of the densities found. The hints change the
+    work, not the result."""
+    setups = jax.vmap(lambda x: _setup(P, x, times, pixel_sigma, order))(samples)
+    grid = setups[-2][0]
+
+    def values_at(idx):
+        return jax.vmap(lambda st, i: _criterion(st, order)(grid[i]))(setups, idx)
+
+    values = _search_density(values_at, grid, samples.shape[0], hints)
+    q = jax.vmap(lambda v: _argmin_log(grid, v))(values)
+    found = jnp.argmin(values, axis=1).astype(jnp.int32)
+
+    def one(setup, x, qi):
+        bias2, var = _errors_at(setup, x, qi, order)
         return bias2 + var
 
-    return jax.vmap(one)(samples)
+    return jax.vmap(one)(setups, samples, q), found
