@@ -356,7 +356,7 @@ def test_design_ends_where_the_objective_is_not_finite(scene, monkeypatch):
     monkeypatch.setattr(
         jo._Problem,
         "objective",
-        lambda self, theta, hints: (jnp.nan * jnp.sum(theta), jnp.zeros(3), hints),
+        lambda self, theta, hints, held: (jnp.nan * jnp.sum(theta), jnp.zeros(3), hints, held[0]),
     )
     model = JointPathModel.create(scene["times"], scene["q0"], n_control=8, grid_per_image=2)
     inits = jnp.zeros((1, *model.shape))

@@ -158,11 +158,28 @@ def test_density_search_finds_the_full_grids_density_with_and_without_hints(scen
             full = se._terms(P, x, times, SIGMA, order, None, full_grid=True)
             for a, b in zip(fast, full, strict=True):
                 np.testing.assert_allclose(a, b, rtol=1e-12, err_msg=f"{name}, order {order}")
-            plain, found = hinted_errors(P, samples, times, SIGMA, order, None)
+            plain, found, q = hinted_errors(P, samples, times, SIGMA, order, None)
             for hints in (found, found + 1, jnp.array([0, 9])):
-                hinted, again = hinted_errors(P, samples, times, SIGMA, order, hints)
+                hinted, again, q2 = hinted_errors(P, samples, times, SIGMA, order, hints)
                 np.testing.assert_allclose(hinted, plain, rtol=1e-12, err_msg=f"{name} {order}")
                 np.testing.assert_array_equal(again, found)
+                np.testing.assert_allclose(q2, q, rtol=1e-12)
+            if order != 2:
+                continue
+            # densities held (a round's line search): those are used, nothing is searched
+            held = (2.0 * q, jnp.asarray(True))
+            kept, same, q3 = hinted_errors(P, samples, times, SIGMA, order, found + 1, held)
+            np.testing.assert_array_equal(same, found + 1)
+            np.testing.assert_array_equal(q3, 2.0 * q)
+            tau = (times[-1] - times[0]) / (F - 1)
+            # (the follower's and slow orbit's near-singular systems amplify rounding)
+            for i in range(2 if name in ("orbit", "random") else 0):
+                bias2, var, _ = smoother_error_terms(
+                    P, samples[i], times, SIGMA, order, float(2.0 * q[i] / tau ** (2 * order - 1))
+                )
+                np.testing.assert_allclose(kept[i], bias2 + var, rtol=1e-9)
+            searched = hinted_errors(P, samples, times, SIGMA, order, found, (2.0 * q, False))
+            np.testing.assert_allclose(searched[0], plain, rtol=1e-12)
     grid = jnp.asarray(10.0 ** np.arange(-4.0, 5.01, 1.0))
 
     def lookup(values):  # (1, n) criterion values read at (1, 4) indices

@@ -234,23 +234,37 @@ def _frame_errors2(P, samples, times, pixel_sigma, order):
     return frame_errors2_hinted(P, samples, times, pixel_sigma, order, None)[0]
 
 
-def frame_errors2_hinted(P, samples, times, pixel_sigma, order, hints):
-    """:func:`_frame_errors2` with each sample's density searched first about ``hints``
-    (S,) (grid indices, e.g. those this returned for nearby cameras; None: no hint; see
-    :func:`_search_density`), and the indices of the densities found. The hints change the
-    work, not the result."""
+def frame_errors2_hinted(P, samples, times, pixel_sigma, order, hints, held=None):
+    """:func:`_frame_errors2` for the design's search: ``(errors2, found, q)``.
+
+    Each sample's density is searched first about ``hints`` (S,) (grid indices, e.g. those
+    this returned for nearby cameras; None: no hint; see :func:`_search_density`): the
+    hints change the work, not the result. ``held = (q, hold)``: where the traced bool
+    ``hold`` is true, the (S,) densities ``q`` (in the smoother's time unit, as returned)
+    are used as they are and nothing is searched (the design holds a round's densities
+    through its line search). Returns the (S, F) errors, the grid indices of the densities
+    (the hints passed, where held) and the densities used.
+    """
     setups = jax.vmap(lambda x: _setup(P, x, times, pixel_sigma, order))(samples)
     grid = setups[-2][0]
 
     def values_at(idx):
         return jax.vmap(lambda st, i: _criterion(st, order)(grid[i]))(setups, idx)
 
-    values = _search_density(values_at, grid, samples.shape[0], hints)
-    q = jax.vmap(lambda v: _argmin_log(grid, v))(values)
-    found = jnp.argmin(values, axis=1).astype(jnp.int32)
+    def search():
+        values = _search_density(values_at, grid, samples.shape[0], hints)
+        q = jax.vmap(lambda v: _argmin_log(grid, v))(values)
+        return q, jnp.argmin(values, axis=1).astype(jnp.int32)
+
+    if held is None:
+        q, found = search()
+    else:
+        q_held, hold = held
+        keep = (jnp.asarray(q_held, grid.dtype), jnp.asarray(hints, jnp.int32))
+        q, found = jax.lax.cond(hold, lambda: keep, search)
 
     def one(setup, x, qi):
         bias2, var = _errors_at(setup, x, qi, order)
         return bias2 + var
 
-    return jax.vmap(one)(setups, samples, q), found
+    return jax.vmap(one)(setups, samples, q), found, q
