@@ -287,9 +287,9 @@ def test_design_program_evaluates_objective_and_constraints_at_one_place(scene, 
     for name in traced:
         original = getattr(jo._Problem, name)
 
-        def counted(self, theta, *hints, original=original, name=name):
+        def counted(self, theta, *held, original=original, name=name):
             traced[name] += 1
-            return original(self, theta, *hints)
+            return original(self, theta, *held)
 
         monkeypatch.setattr(jo._Problem, name, counted)
     rhos = jnp.ones(3)
@@ -356,7 +356,7 @@ def test_design_ends_where_the_objective_is_not_finite(scene, monkeypatch):
     monkeypatch.setattr(
         jo._Problem,
         "objective",
-        lambda self, theta, hints, held: (jnp.nan * jnp.sum(theta), jnp.zeros(3), hints, held[0]),
+        lambda self, theta, held: (jnp.nan * jnp.sum(theta), jnp.zeros(3), held[0]),
     )
     model = JointPathModel.create(scene["times"], scene["q0"], n_control=8, grid_per_image=2)
     inits = jnp.zeros((1, *model.shape))

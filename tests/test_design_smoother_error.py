@@ -143,33 +143,26 @@ def test_bad_arguments(scene):
         expected_smoother_errors_for_cameras(P, x[None], times[::-1], SIGMA)
 
 
-def test_density_search_finds_the_full_grids_density_with_and_without_hints(scene):
-    """The density search reads 8 of the 10 grid values, or 4 about a hint; on camera
-    paths from fast to degenerate and for orders 1 and 2 it picks the full grid's density, so
-    the predicted errors are the same, and a hint (right, wrong or at the grid's edge)
-    changes only the work; on any grid profile with one minimum, wherever that lies (the
-    ends included), it hands the parabola the full grid's three values."""
+def test_density_search_finds_the_full_grids_density_and_held_densities_are_used(scene):
+    """The density search reads 8 of the 10 grid values; on camera paths from fast to
+    degenerate and for orders 1 and 2 it picks the full grid's density, so the predicted
+    errors are the same; held densities (a design round's line search) are used as given,
+    and without ``hold`` the search runs as before; on any grid profile with one minimum,
+    wherever that lies (the ends included), it hands the parabola the full grid's three
+    values."""
     times, x, paths = scene
     samples = jnp.stack([x, x + jnp.array([0.05, -0.02, 0.01])])
-    hinted_errors = jax.jit(se.frame_errors2_hinted, static_argnames="order")
+    held_errors = jax.jit(se.frame_errors2_held, static_argnames="order")
     for name, P in paths.items():
         for order in (1, 2):
             fast = se._terms(P, x, times, SIGMA, order, None)
             full = se._terms(P, x, times, SIGMA, order, None, full_grid=True)
             for a, b in zip(fast, full, strict=True):
                 np.testing.assert_allclose(a, b, rtol=1e-12, err_msg=f"{name}, order {order}")
-            plain, found, q = hinted_errors(P, samples, times, SIGMA, order, None)
-            for hints in (found, found + 1, jnp.array([0, 9])):
-                hinted, again, q2 = hinted_errors(P, samples, times, SIGMA, order, hints)
-                np.testing.assert_allclose(hinted, plain, rtol=1e-12, err_msg=f"{name} {order}")
-                np.testing.assert_array_equal(again, found)
-                np.testing.assert_allclose(q2, q, rtol=1e-12)
             if order != 2:
                 continue
-            # densities held (a round's line search): those are used, nothing is searched
-            held = (2.0 * q, jnp.asarray(True))
-            kept, same, q3 = hinted_errors(P, samples, times, SIGMA, order, found + 1, held)
-            np.testing.assert_array_equal(same, found + 1)
+            plain, q = held_errors(P, samples, times, SIGMA, order)
+            kept, q3 = held_errors(P, samples, times, SIGMA, order, (2.0 * q, jnp.asarray(True)))
             np.testing.assert_array_equal(q3, 2.0 * q)
             tau = (times[-1] - times[0]) / (F - 1)
             # (the follower's and slow orbit's near-singular systems amplify rounding)
@@ -178,18 +171,14 @@ def test_density_search_finds_the_full_grids_density_with_and_without_hints(scen
                     P, samples[i], times, SIGMA, order, float(2.0 * q[i] / tau ** (2 * order - 1))
                 )
                 np.testing.assert_allclose(kept[i], bias2 + var, rtol=1e-9)
-            searched = hinted_errors(P, samples, times, SIGMA, order, found, (2.0 * q, False))
-            np.testing.assert_allclose(searched[0], plain, rtol=1e-12)
+            searched, q4 = held_errors(P, samples, times, SIGMA, order, (2.0 * q, False))
+            np.testing.assert_allclose(searched, plain, rtol=1e-12)
+            np.testing.assert_allclose(q4, q, rtol=1e-12)
     grid = jnp.asarray(10.0 ** np.arange(-4.0, 5.01, 1.0))
-
-    def lookup(values):  # (1, n) criterion values read at (1, 4) indices
-        return lambda idx: jnp.take_along_axis(values, idx, axis=1)
-
     for best in range(grid.shape[0]):
         values = jnp.asarray((np.arange(grid.shape[0]) - best - 0.3) ** 2)[None]
-        for hints in (None, jnp.array([best]), jnp.array([(best + 3) % 10])):
-            searched = se._search_density(lookup(values), grid, 1, hints)
-            assert np.sum(np.isfinite(searched)) <= (8 if hints is None else 10)
-            assert float(_argmin_log(grid, searched[0])) == float(_argmin_log(grid, values[0]))
-            if hints is not None and 1 <= best <= 8 and int(hints[0]) == best:
-                assert np.sum(np.isfinite(searched)) <= 4  # a right hint: one pass
+        searched = se._search_density(
+            lambda idx, v=values: jnp.take_along_axis(v, idx, axis=1), grid, 1
+        )
+        assert np.sum(np.isfinite(searched)) <= 8
+        assert float(_argmin_log(grid, searched[0])) == float(_argmin_log(grid, values[0]))

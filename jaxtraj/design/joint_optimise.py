@@ -47,7 +47,7 @@ from .joint_path import (
 )
 from .objectives import _metrics, _sample_errors
 from .pose_error import _checked_layout, _pose_metrics, _sample_covariances
-from .smoother_error import frame_errors2_hinted as _smoother_frame_errors2
+from .smoother_error import frame_errors2_held as _smoother_frame_errors2
 
 __all__ = [
     "JointPathDesign",
@@ -139,54 +139,53 @@ class _Problem(eqx.Module):
         T_w_c = camera_poses(self.cell, self.model.joints_at_images(theta))
         return projection_matrices(self.cell, T_w_c)
 
-    def _frame_terms(self, theta, hints=None, held=None):
+    def _frame_terms(self, theta, held=None):
         """Per sample and frame: expected squared errors (S, F), or for the pose estimator
-        the point covariances (S, F, 3, 3); and the (S,) grid indices and values of the
-        smoother's noise densities (``hints`` as returned for an earlier ``theta``, or None:
-        they change the work, not the result; ``held = (densities, hold)``: where ``hold``,
-        those densities instead of a search; see
-        :func:`jaxtraj.design.smoother_error.frame_errors2_hinted`; zeros for the other
+        the point covariances (S, F, 3, 3); and the (S,) smoother's noise densities
+        (``held = (densities, hold)``: where ``hold``, those densities instead of a search;
+        see :func:`jaxtraj.design.smoother_error.frame_errors2_held`; zeros for the other
         estimators)."""
         P = self._cameras(theta)
-        none = jnp.zeros(self.samples.shape[0], jnp.int32)
         noq = jnp.zeros(self.samples.shape[0], P.dtype)
         if self.estimator == "dct":
-            return _sample_errors(P, self.samples, self.basis, self.pixel_sigma), none, noq
+            return _sample_errors(P, self.samples, self.basis, self.pixel_sigma), noq
         if self.estimator == "pose":
             covs = _sample_covariances(
                 P, self.samples, self.R_w_o, self.layout, self.point, self.pixel_sigma
             )
-            return covs, none, noq
+            return covs, noq
         order = int(self.estimator[-1])
         times = self.model.times
-        return _smoother_frame_errors2(P, self.samples, times, self.pixel_sigma, order, hints, held)
+        return _smoother_frame_errors2(P, self.samples, times, self.pixel_sigma, order, held)
 
     def _errors_from(self, terms):
-        return _pose_metrics(terms) if self.estimator == "pose" else _metrics(terms)
-
-    def report_errors(self, theta, hints=None, held=None):
-        """``(rms, mean, worst)`` [m]: the worst is ``max sqrt(E|x_hat - x|^2)`` over the
-        samples and frames (reported, not designed for); one evaluation of the frames.
-        With ``hints`` (see :meth:`_frame_terms`), also the new hints and the densities."""
-        terms, found, qs = self._frame_terms(theta, hints, held)
+        """``(rms, mean, worst)`` [m] of the frame terms: the worst is
+        ``max sqrt(E|x_hat - x|^2)`` over the samples and frames (reported, not designed
+        for)."""
         e2 = jnp.trace(terms, axis1=-2, axis2=-1) if self.estimator == "pose" else terms
         worst = jnp.sqrt(jnp.max(jnp.where(jnp.isnan(e2), jnp.inf, e2)))
-        errors = (*self._errors_from(terms), worst)
-        return errors if hints is None else (errors, found, qs)
+        rms, mean = _pose_metrics(terms) if self.estimator == "pose" else _metrics(terms)
+        return rms, mean, worst
 
-    def objective(self, theta, hints, held):
+    def report_errors(self, theta):
+        """``(rms, mean, worst)`` [m] (see :meth:`_errors_from`); one evaluation of the
+        frames."""
+        return self._errors_from(self._frame_terms(theta)[0])
+
+    def objective(self, theta, held):
         """The objective (minimised), the (3,) expected errors ``(rms, mean, worst)`` [m]
         of :meth:`report_errors` from the same evaluation of the frames, so that the
         design's report needs no second program (NaN for ``eta``, which does not compute
-        them: its report comes from :func:`_evaluate`), and the hints and densities for
+        them: its report comes from :func:`_evaluate`), and the smoother's densities for
         the next evaluation (see :meth:`_frame_terms`)."""
         if self.kind == "eta":  # maximise the geometric mean of eta over the samples
             c = camera_poses(self.cell, self.model.joints_at_images(theta))[:, :3, 3]
             etas = jax.vmap(lambda x: reconstructibility(c, x, self.basis))(self.samples)
-            return -jnp.mean(jnp.log(etas)), jnp.full(3, jnp.nan, theta.dtype), hints, held[0]
-        (rms, mean, worst), found, qs = self.report_errors(theta, hints, held)
+            return -jnp.mean(jnp.log(etas)), jnp.full(3, jnp.nan, theta.dtype), held[0]
+        terms, qs = self._frame_terms(theta, held)
+        rms, mean, worst = self._errors_from(terms)
         value = jnp.log(mean if self.kind == "mean_error" else rms)
-        return value, jnp.stack([rms, mean, worst]), found, qs
+        return value, jnp.stack([rms, mean, worst]), qs
 
     def constraint_values(self, theta):
         """The unmargined values per constraint (see :func:`joint_constraint_values`)."""
@@ -234,7 +233,6 @@ class _Search(NamedTuple):
     g: Float[Array, " n"]  # its gradient
     c: Float[Array, " G"]  # the constraint values there
     err: Float[Array, " 3"]  # the expected errors there (see _Problem.objective)
-    hints: Int[Array, " S"]  # the objective's hints from the last evaluation (its work only)
     qs: Float[Array, " S"]  # the smoother's densities of this round (see _design)
     H: Float[Array, "n n"]  # inverse Hessian estimate
     p: Float[Array, " n"]  # search direction
@@ -246,15 +244,14 @@ class _Search(NamedTuple):
     done: Bool[Array, ""]
 
 
-def _lagrangian(x, lam, rho, problem, shape, hints, held):
+def _lagrangian(x, lam, rho, problem, shape, held):
     """Augmented Lagrangian of the flattened parameters, and (the constraint values, the
-    expected errors, the objective's hints and densities for the next evaluation; ``held``
-    as for :meth:`_Problem.objective`)."""
+    expected errors, the smoother's densities; ``held`` as for :meth:`_Problem.objective`)."""
     theta = x.reshape(shape)
     g = problem.constraints(theta)
     shifted = jnp.maximum(lam + rho * g, 0.0)
-    f, err, hints, qs = problem.objective(theta, hints, held)
-    return f + jnp.sum(shifted**2 - lam**2) / (2 * rho), (g, err, hints, qs)
+    f, err, qs = problem.objective(theta, held)
+    return f + jnp.sum(shifted**2 - lam**2) / (2 * rho), (g, err, qs)
 
 
 @eqx.filter_jit
@@ -304,9 +301,7 @@ def _design(
         search = s.phase == _SEARCH
         rho = jnp.where(s.phase == _CHECK, jnp.asarray(RHO_CHECK, dtype), rhos[s.i])
         xt = jnp.where(search, s.x + s.alpha * s.p, s.x)
-        (ft, (ct, et, ht, qt)), gt = value_grad(
-            xt, s.lam, rho, problem, shape, s.hints, (s.qs, search)
-        )
+        (ft, (ct, et, qt)), gt = value_grad(xt, s.lam, rho, problem, shape, (s.qs, search))
         finite = jnp.isfinite(ft) & jnp.all(jnp.isfinite(gt))
         slope = s.g @ s.p
         armijo = search & finite & (ft <= s.f + ARMIJO * s.alpha * slope)
@@ -364,7 +359,6 @@ def _design(
             g=g,
             c=c,
             err=err,
-            hints=ht,
             qs=qt,
             H=H,
             p=p,
@@ -388,7 +382,6 @@ def _design(
             g=jnp.zeros(n, dtype),
             c=jnp.zeros_like(lam0),
             err=jnp.zeros(3, dtype),
-            hints=jnp.full(problem.samples.shape[0], -1, jnp.int32),
             qs=jnp.ones(problem.samples.shape[0], dtype),
             H=eye,
             p=jnp.zeros(n, dtype),

@@ -25,9 +25,8 @@ error has two parts, both exact for the linearised model:
 likelihood of the noisy pixels over :func:`jaxtraj.estimators.default_psd_grid` (the
 noise-free value plus the expected noise term ``-tr(D^-1 H)``), refined by a parabola in
 ``log q``, held fixed for gradients. The criterion is evaluated on 8 of the 10 decades,
-found in two passes, or on 4 about a hint (the decade found for nearby cameras: the design
-passes the last evaluation's), which gives the full grid's ``q`` wherever the criterion
-has one minimum along the grid (:func:`_search_density`).
+found in two passes, which gives the full grid's ``q`` wherever the criterion has one
+minimum along the grid (:func:`_search_density`).
 Everything is O(F) per trajectory and differentiable with respect to the cameras.
 """
 
@@ -151,54 +150,34 @@ def _expected_neg2_log_evidence(blocks, A, Qinv, q, order):
     return c - jnp.sum(y * y) - edf + bt.logdet(chol) + (F - 1) * 3 * order * jnp.log(q)
 
 
-#: the decades a first pass reads about a hint: its two neighbours and one more, as many as
-#: the coarse passes (so every pass is the same program: one copy of the criterion)
-_NEAR_HINT = (-1, 0, 1, 2)
-_AROUND = (-2, -1, 1, 2)  # the second coarse pass, about the first's best
+_AROUND = (-2, -1, 1, 2)  # the second pass, about the first's best
 
 
-def _search_density(values_at, grid, n_samples, hints=None):
+def _search_density(values_at, grid, n_samples):
     """The density criterion of ``n_samples`` trajectories where it decides
     :func:`_argmin_log`'s answer, ``inf`` elsewhere: (S, n) values.
 
     ``values_at(idx)`` evaluates the criterion of every trajectory at its own grid indices
-    ``idx`` (S, 4). Up to three passes of 4 evaluations, in one loop (so a program holds the
-    criterion once):
-
-    0. with ``hints`` (S,) (grid indices, e.g. those of nearby cameras): the hint, its
-       neighbours and one more. Where every trajectory's value at its hint is strictly below
-       both neighbours, the search stops: wherever the criterion has one minimum along the
-       grid, that is it (4 evaluations).
-    1. every third decade and the last;
-    2. the two decades either side of pass 1's best: wherever the criterion has one
-       minimum along the grid, it lies within two decades of pass 1's best, so the minimum
-       and its two neighbours, all that :func:`_argmin_log` reads, are those of the full
-       grid (8 of the 10 evaluations of the default grid).
-
-    A hint changes how much is computed, not the answer.
+    ``idx`` (S, 4). Two passes of 4 evaluations, in one loop (so a program holds the
+    criterion once): every third decade and the last, then the two decades either side
+    of the first pass's best. Wherever the criterion has one minimum along the grid, it
+    lies within two decades of the first pass's best, so the minimum and its two
+    neighbours, all that :func:`_argmin_log` reads, are those of the full grid (8 of the
+    10 evaluations of the default grid).
     """
     n = grid.shape[0]
     coarse = np.unique(np.append(np.arange(0, n, 3), n - 1))
     first = jnp.broadcast_to(jnp.asarray(np.resize(coarse, 4)), (n_samples, 4))
-    if hints is None:
-        near, start = first, 1
-    else:
-        hint = jnp.clip(hints, 1, n - 2)[:, None]
-        near, start = jnp.clip(hint + jnp.asarray(_NEAR_HINT), 0, n - 1), 0
 
-    def one_pass(state):
-        p, values, _ = state
+    def one_pass(p, values):
         j = jnp.asarray(coarse)[jnp.argmin(values[:, coarse], axis=1)]
         around = jnp.clip(j[:, None] + jnp.asarray(_AROUND), 0, n - 1)
-        idx = jnp.where(p == 0, near, jnp.where(p == 1, first, around))
+        idx = jnp.where(p == 0, first, around)
         got = values_at(idx)
         got = jnp.where(jnp.isfinite(got), got, jnp.inf)
-        values = jax.vmap(lambda v, i, u: v.at[i].set(u))(values, idx, got)
-        at_hint = jnp.all((got[:, 1] < got[:, 0]) & (got[:, 1] < got[:, 2]))
-        return p + 1, values, ((p == 0) & at_hint) | (p == 2)
+        return jax.vmap(lambda v, i, u: v.at[i].set(u))(values, idx, got)
 
-    state = (jnp.asarray(start), jnp.full((n_samples, n), jnp.inf, grid.dtype), jnp.asarray(False))
-    return jax.lax.while_loop(lambda st: ~st[2], one_pass, state)[1]
+    return jax.lax.fori_loop(0, 2, one_pass, jnp.full((n_samples, n), jnp.inf, grid.dtype))
 
 
 def expected_smoother_errors_for_cameras(
@@ -231,19 +210,17 @@ def expected_smoother_errors_for_cameras(
 @functools.partial(jax.jit, static_argnames=("order",))
 def _frame_errors2(P, samples, times, pixel_sigma, order):
     """(S, F) expected squared error per sample and frame, ``bias^2 + var``."""
-    return frame_errors2_hinted(P, samples, times, pixel_sigma, order, None)[0]
+    return frame_errors2_held(P, samples, times, pixel_sigma, order)[0]
 
 
-def frame_errors2_hinted(P, samples, times, pixel_sigma, order, hints, held=None):
-    """:func:`_frame_errors2` for the design's search: ``(errors2, found, q)``.
+def frame_errors2_held(P, samples, times, pixel_sigma, order, held=None):
+    """:func:`_frame_errors2` for the design's search: ``(errors2, q)``, the (S, F)
+    errors and the (S,) densities used (in the smoother's time unit).
 
-    Each sample's density is searched first about ``hints`` (S,) (grid indices, e.g. those
-    this returned for nearby cameras; None: no hint; see :func:`_search_density`): the
-    hints change the work, not the result. ``held = (q, hold)``: where the traced bool
-    ``hold`` is true, the (S,) densities ``q`` (in the smoother's time unit, as returned)
-    are used as they are and nothing is searched (the design holds a round's densities
-    through its line search). Returns the (S, F) errors, the grid indices of the densities
-    (the hints passed, where held) and the densities used.
+    ``held = (q, hold)``: where the traced bool ``hold`` is true, the (S,) densities ``q``
+    (as returned earlier) are used as they are and nothing is searched (the design holds a
+    round's densities through its line search); otherwise, and with ``held=None``, each
+    sample's density is searched (:func:`_search_density`).
     """
     setups = jax.vmap(lambda x: _setup(P, x, times, pixel_sigma, order))(samples)
     grid = setups[-2][0]
@@ -252,19 +229,17 @@ def frame_errors2_hinted(P, samples, times, pixel_sigma, order, hints, held=None
         return jax.vmap(lambda st, i: _criterion(st, order)(grid[i]))(setups, idx)
 
     def search():
-        values = _search_density(values_at, grid, samples.shape[0], hints)
-        q = jax.vmap(lambda v: _argmin_log(grid, v))(values)
-        return q, jnp.argmin(values, axis=1).astype(jnp.int32)
+        values = _search_density(values_at, grid, samples.shape[0])
+        return jax.vmap(lambda v: _argmin_log(grid, v))(values)
 
     if held is None:
-        q, found = search()
+        q = search()
     else:
         q_held, hold = held
-        keep = (jnp.asarray(q_held, grid.dtype), jnp.asarray(hints, jnp.int32))
-        q, found = jax.lax.cond(hold, lambda: keep, search)
+        q = jax.lax.cond(hold, lambda: jnp.asarray(q_held, grid.dtype), search)
 
     def one(setup, x, qi):
         bias2, var = _errors_at(setup, x, qi, order)
         return bias2 + var
 
-    return jax.vmap(one)(setups, samples, q), found, q
+    return jax.vmap(one)(setups, samples, q), q
