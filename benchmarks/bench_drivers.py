@@ -7,10 +7,11 @@ Usage::
 
     python benchmarks/bench_drivers.py [--points 64] [--only select_k,regularised]
 
-The regularised DCT's per-point K-fold penalty choice is slow (see the README), so it runs
-on ``--regularised-points`` points (default 16); with a shared weight it cross-validates 16
-tracks and solves all N, so its per-point cost falls with N (the issue's size: N = 2000).
-The per-point choice by generalised cross-validation (``criterion="gcv"``) runs on all N.
+The regularised DCT's per-point 5-fold penalty choice is the slowest (see the README), so
+it runs on ``--regularised-points`` points (default 16); with a shared weight it
+cross-validates 16 tracks and solves all N, so its per-point cost falls with N (the
+issue's size: N = 2000). The per-point choices by leave-one-frame-out cross-validation
+(``folds=F``) and generalised cross-validation (``criterion="gcv"``) run on all N.
 """
 
 from __future__ import annotations
@@ -50,6 +51,10 @@ def cases(n: int, n_reg: int) -> dict:
         "reconstruct_regularised_points (k = 60, CV per point)": (
             n_reg,
             lambda: reconstruct_regularised_points(P, few, t, k=60),
+        ),
+        "reconstruct_regularised_points (k = 60, leave-one-frame-out CV per point)": (
+            n,
+            lambda: reconstruct_regularised_points(P, uv, t, k=60, folds=len(t)),
         ),
         "reconstruct_regularised_points (k = 60, GCV per point)": (
             n,

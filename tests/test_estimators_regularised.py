@@ -84,10 +84,14 @@ def test_gain_weighted_penalty_choice_on_a_fast_camera():
     assert float(chosen.gain) == pytest.approx(float(gain[int(np.argmin(choice.criterion))]))
 
 
-def test_kfold_curve_equals_refits_of_each_fold():
-    """The K-fold choice's held-out RMS at every weight (from one eigendecomposition per
-    fold) equals refitting each fold's training frames with the solver, a missing frame
-    included, and its gain that of the solver on all frames."""
+@pytest.mark.parametrize("folds", [3, 4, 30])  # held-out blocks of 20, 16 and 2 rows
+def test_kfold_curve_equals_refits_of_each_fold(folds):
+    """The K-fold choice's held-out RMS at every weight (from the fit on all frames and the
+    exact update for leaving each fold out) equals refitting each fold's training frames
+    with the solver, a missing frame included and folds of unequal size (30 frames in 4),
+    and its gain that of the solver on all frames. The three fold sizes take the three
+    ways of forming and solving the held-out blocks (LAPACK, written-out Cholesky, one
+    product of row pairs: leave-one-frame-out)."""
     s = make_scene(jax.random.PRNGKey(8), n_frames=30, noise_px=0.5)
     basis = jt.DCTBasis.from_times(s.times, 6)
     Phi, rough = basis(s.times), roughness_penalty(basis)
@@ -95,20 +99,23 @@ def test_kfold_curve_equals_refits_of_each_fold():
     w = np.ones(30)
     w[7], uv[7] = 0.0, np.nan  # a missing detection
     grid = np.logspace(-3, 5, 5)
-    choice = select_penalty_cv(s.P, uv, basis, s.times, w, grid=grid, folds=3)
-    held = np.arange(30)[None, :] % 3 == np.arange(3)[:, None]
+    choice = select_penalty_cv(s.P, uv, basis, s.times, w, grid=grid, folds=folds)
+    held = np.arange(30)[None, :] % folds == np.arange(folds)[:, None]
     direct = []
     for j, lam in enumerate(grid):
         per_fold = []
         for mask in held:
+            if not np.any(mask & (w > 0)):
+                continue  # the missing frame's own fold (leave-one-frame-out) holds nothing
             fit = jt.reconstruct(s.P, uv, Phi, np.where(mask, 0.0, w), penalty=lam * rough)
             proj = np.einsum("fij,fj->fi", np.asarray(s.P)[:, :, :3], fit.points)
             proj = proj + np.asarray(s.P)[:, :, 3]
             err2 = np.sum((proj[:, :2] / proj[:, 2:] - uv) ** 2, axis=1)
             per_fold.append(np.sqrt(np.mean(err2[mask & (w > 0)])))
         direct.append(np.mean(per_fold))
-        full = jt.reconstruct(s.P, uv, Phi, w, penalty=lam * rough)
-        assert float(choice.gain[j]) == pytest.approx(float(full.gain), rel=0.02)
+        if folds == 3:
+            full = jt.reconstruct(s.P, uv, Phi, w, penalty=lam * rough)
+            assert float(choice.gain[j]) == pytest.approx(float(full.gain), rel=0.02)
     np.testing.assert_allclose(choice.cv_rms_px, direct, rtol=1e-7)
 
 
@@ -121,8 +128,9 @@ def test_bad_input(rng):
         jt.reconstruct(s.P, s.uv, Phi, s.weights, penalty=-jnp.ones(6))
     with pytest.raises(ValueError, match="order"):
         roughness_penalty(jt.DCTBasis.from_times(s.times, 6), order=4)
-    with pytest.raises(ValueError, match="folds"):
-        select_penalty_cv(s.P, s.uv, jt.DCTBasis.from_times(s.times, 6), s.times, folds=1)
+    for bad in (1, len(s.times) + 1, 2.5, True):
+        with pytest.raises(ValueError, match="folds"):
+            select_penalty_cv(s.P, s.uv, jt.DCTBasis.from_times(s.times, 6), s.times, folds=bad)
     with pytest.raises(ValueError, match="times"):
         select_penalty_cv(s.P, s.uv, jt.DCTBasis.from_times(s.times, 6), s.times[:-1])
     with pytest.raises(ValueError, match="rule"):
@@ -145,7 +153,9 @@ def test_batched_points_with_penalty_equal_loop():
 
 def test_batched_driver_equals_per_point_choice_and_solve():
     """reconstruct_regularised_points: each point's weight is select_penalty_cv's choice
-    for it (or one shared weight), and the points equal the single-point solves."""
+    for it (or one shared weight), and the points equal the single-point solves (with a
+    weight per point they come from the choice's eigendecomposition, the gain from its
+    eigenbasis: within 2 % of the solver's, both 8 Lanczos steps)."""
     from jaxtraj.estimators import reconstruct_regularised_points
 
     s = make_scene(jax.random.PRNGKey(6), n_frames=30, noise_px=0.3)
@@ -160,8 +170,10 @@ def test_batched_driver_equals_per_point_choice_and_solve():
         assert float(choice.lam[n]) == float(one.lam)
         np.testing.assert_allclose(choice.criterion[n], one.criterion, rtol=1e-9)
         ref = jt.reconstruct(s.P, uv[n], Phi, penalty=one.lam * rough)
+        # the fit at the chosen weight comes from the choice's decomposition
         np.testing.assert_allclose(res.points[n], ref.points, atol=1e-10)
-        assert float(res.gain[n]) == pytest.approx(float(ref.gain), rel=1e-9)
+        assert float(res.gain[n]) == pytest.approx(float(ref.gain), rel=0.02)  # both Lanczos
+        assert int(res.status[n]) == int(ref.status)
     assert float(choice.lam[1]) > float(choice.lam[0])  # noisier track, stiffer penalty
     res_shared, _, sc = reconstruct_regularised_points(
         s.P, uv, s.times, k=6, grid=grid, folds=2, shared=True
@@ -235,8 +247,9 @@ def test_gcv_choice_equals_direct_computation_and_its_fit_the_solver():
 
 
 def test_gcv_choice_is_as_accurate_as_kfold_on_random_and_fast_cameras():
-    """On well-posed robot scenes the GCV weight's 3D error is within 15 % of the K-fold
-    choice's (and both flag a slow camera's tracks)."""
+    """On well-posed robot scenes the weights by GCV and by leave-one-frame-out CV give
+    3D errors within 15 % of the 5-fold choice's (and all three flag a slow camera's
+    tracks)."""
     from jaxtraj.estimators import reconstruct_regularised_points
 
     rng = np.random.default_rng(3)
@@ -244,12 +257,15 @@ def test_gcv_choice_is_as_accurate_as_kfold_on_random_and_fast_cameras():
         s = robot_scene(rng, F=60, rate=15.0, mode=mode, noise=0.3)
         uv = np.asarray(s["uv"])[None]
         errs = {}
-        for crit in ("kfold", "gcv"):
-            res, _, _ = reconstruct_regularised_points(s["P"], uv, s["times"], k=20, criterion=crit)
-            errs[crit] = rmse(res.points[0], s["X"])
-            assert (int(res.status[0]) != jt.Status.OK) == flagged, (mode, crit)
+        for crit, folds in (("kfold", 5), ("gcv", 5), ("kfold", 60)):
+            res, _, _ = reconstruct_regularised_points(
+                s["P"], uv, s["times"], k=20, criterion=crit, folds=folds
+            )
+            errs[crit, folds] = rmse(res.points[0], s["X"])
+            assert (int(res.status[0]) != jt.Status.OK) == flagged, (mode, crit, folds)
         if not flagged:
-            assert errs["gcv"] <= 1.15 * errs["kfold"], (mode, errs)
+            assert errs["gcv", 5] <= 1.15 * errs["kfold", 5], (mode, errs)
+            assert errs["kfold", 60] <= 1.15 * errs["kfold", 5], (mode, errs)
 
 
 def test_fit_collapsed_towards_a_slow_camera_is_flagged_by_its_reprojection_rms():

@@ -24,10 +24,13 @@ coefficients scaled by the penalty, ``R^-1/2 S R^-1/2 = V diag(e) V^T`` gives
 for every ``lam`` at once (``E``: the constant's block ``A11^-1``; ``H`` fixed per track),
 so each weight costs one matrix product instead of a factorisation:
 
-* K-fold (the default): one eigendecomposition per fold's training frames gives the
-  held-out points at every weight, and one of all frames gives the gain at every weight:
-  ``folds + 1`` eigendecompositions of ``3k - 3`` per track instead of
-  ``folds x G + G`` factorisations (the same choice up to rounding);
+* K-fold (the default, 5 interleaved folds of frames): the fit on the other frames
+  follows from the fit on all of them by the exact update for leaving a block of rows
+  out (:func:`_held_out_rms`), one factorisation of the fold's ``2m`` held-out rows per
+  weight: one eigendecomposition of ``3k - 3`` per track for all folds and weights (the
+  same choice as refitting each fold up to rounding). ``folds = F`` is
+  leave-one-frame-out: 2 x 2 blocks, all solved at once without LAPACK, about as cheap as
+  GCV;
 * generalised cross-validation (``criterion="gcv"`` of the batched driver): one
   eigendecomposition, ``GCV = n RSS / (n - edf)^2`` over the ``n`` ray-constraint rows
   with ``edf = 3 + sum_i e_i / (e_i + lam)`` (the hat matrix's trace), an estimate of
@@ -37,8 +40,9 @@ so each weight costs one matrix product instead of a factorisation:
   eigenvalue of ``K diag(h) K^T`` with ``h = (1, 1, 1, e / (e + lam)^2)`` and ``K`` fixed
   per track.
 
-The eigendecompositions are LAPACK calls, one track and one fold per loop step on a CPU,
-never a batched call. Both criteria use the same gain-weighted rule; like every
+The eigendecompositions are LAPACK calls, one track per loop step on a CPU, never a
+batched call, and so are the held-out factorisations of folds of more than 8 frames (one
+fold and weight per step). Both criteria use the same gain-weighted rule; like every
 criterion on the pixels they are blind along the rays, which the gain weighting and
 :func:`flag_undetermined_depth` answer.
 """
@@ -55,7 +59,7 @@ from jaxtyping import Array, ArrayLike, Float, Int
 
 from .._batching import map_points, points_per_step
 from .._checks import check_finite, check_shape, check_tracks, is_concrete
-from .._linalg import cholesky_small, solve_triangular_small
+from .._linalg import cholesky_small, solve_spd_small, solve_triangular_small
 from .._spd import top_eigenvalue
 from ..basis import DCTBasis
 from ..depth import camera_centres, depth_uncertainty, with_ray_bound
@@ -71,6 +75,7 @@ from ..solve import (
     _ray_checks,
     _reprojection_rms,
     _status,
+    _sym_index,
     reconstruct,
 )
 from ._depth import flag_undetermined_depth
@@ -117,10 +122,15 @@ class PenaltyChoice(eqx.Module):
     tracks: Int[Array, " M"] | None = None
 
 
-def _fold_masks(num_frames: int, folds: int) -> np.ndarray:
-    """(folds, F) boolean masks of held-out frames, interleaved so that each fold spans
-    the whole time range (held-out frames are interpolated, not extrapolated)."""
-    return np.arange(num_frames)[None, :] % folds == np.arange(folds)[:, None]
+def _fold_frames(num_frames: int, folds: int) -> tuple[np.ndarray, np.ndarray]:
+    """(folds, m) indices of each fold's held-out frames and (folds, m) which are real
+    (``m = ceil(F / folds)``; a shorter fold is padded with frame 0, not real). Folds are
+    interleaved (frame ``f`` is in fold ``f % folds``), so that each spans the whole time
+    range (held-out frames are interpolated, not extrapolated)."""
+    m = -(-num_frames // folds)
+    frames = np.arange(folds)[:, None] + folds * np.arange(m)[None, :]
+    real = frames < num_frames
+    return np.where(real, frames, 0), real
 
 
 def select_penalty_cv(
@@ -138,8 +148,10 @@ def select_penalty_cv(
 ) -> PenaltyChoice:
     """Choose ``lam`` by K-fold cross-validation on held-out reprojection error.
 
-    Each fold's fit at every grid value comes from one eigendecomposition of its training
-    frames' system (module notes), the folds in a loop. ``rule="reprojection"``
+    Each fold's fit at every grid value follows from the fit on all frames (one
+    eigendecomposition, module notes). ``folds`` interleaved folds of frames, 2 to F
+    (``folds = F``: leave-one-frame-out, the cheapest); the score is the mean over the
+    folds holding an observed frame. ``rule="reprojection"``
     picks the value with the smallest mean held-out RMS ``e``; ``rule="gain_weighted"``
     (default) the smallest ``e * max(1, gain / healthy_gain)``, with the conditioning gain
     of the penalised solve on all frames (the rule of
@@ -148,8 +160,7 @@ def select_penalty_cv(
     unit roughness) logarithmically.
     """
     check_shape("times", times, (np.shape(P)[0],), "one timestamp per frame of P")
-    if folds < 2:
-        raise ValueError(f"folds: expected >= 2, got {folds}")
+    _check_folds(folds, np.shape(P)[0])
     check_rule(rule, healthy_gain)
     F = np.shape(P)[0]
     dtype = jnp.result_type(jnp.asarray(P).dtype, jnp.float32)
@@ -158,11 +169,10 @@ def select_penalty_cv(
     w = jnp.ones(F, dtype) if weights is None else jnp.asarray(weights, dtype)
     rough = roughness_penalty(basis, order)
     Phi = basis(jnp.asarray(times, dtype))
-    held = jnp.asarray(_fold_masks(F, folds))
     P = jnp.asarray(P, dtype)
     uv = jnp.where(w[:, None] > 0, jnp.asarray(uv, dtype), 0.0)
     healthy = healthy_gain if rule == "gain_weighted" else None
-    return _cv(P, uv, Phi, w, rough, grid, held, healthy)
+    return _cv(P, uv, Phi, w, rough, grid, folds, healthy)
 
 
 class _Diagonal(eqx.Module):
@@ -228,26 +238,132 @@ def _points_at(Phi, diag: _Diagonal, grid):
     return jnp.einsum("fu,uag->fag", Phi, B.reshape(Phi.shape[1], 3, -1)), B
 
 
-@eqx.filter_jit
-def _cv(P, uv, Phi, w, rough, grid, held, healthy_gain):
-    """K-fold choice of one track: each fold's fit at every weight from one
-    eigendecomposition of its training frames (:func:`_diagonalise`), the folds in a loop
-    (unbatched LAPACK calls), and the gain at every weight from that of all frames."""
-    Lg = jnp.linalg.cholesky(Phi.T @ Phi)  # Theta^T Theta = Lg Lg^T (k x k: negligible)
+#: largest held-out block (2 rows per frame of a fold) solved by the written-out Cholesky
+#: of :mod:`jaxtraj._linalg` instead of LAPACK: folds of up to 8 frames
+SMALL_FOLD_ROWS = 16
+#: folds of up to this many frames form their blocks from products of row pairs, one
+#: matrix product for all folds and weights (leave-one-frame-out: 5.2 against 5.6 ms per
+#: track at F = 150, k = 60; slower than the batched products from 5 frames a fold)
+PAIRED_FOLD_FRAMES = 2
 
-    def held_out_rms(mask):
-        X, _ = _points_at(Phi, _diagonalise(P, uv, Phi, jnp.where(mask, 0.0, w), rough), grid)
-        rms = jax.vmap(lambda x: _reprojection_rms(P, uv, x, mask & (w > 0)), in_axes=2)
-        return rms(X)
 
-    score = jnp.mean(jax.lax.map(held_out_rms, held), axis=0)
-    _, _, Q, _ = _frame_blocks(P, uv, w)
-    gain = _diagonalise(P, uv, Phi, w, rough).gain(Lg, _frame_spread(Q, w)[1], grid)
+def _held_out_rms(P, uv, Phi, w, diag: _Diagonal, X, grid, folds: int):
+    """(folds, G) held-out reprojection RMS [px] of each fold at each weight and (folds,)
+    whether the fold holds an observed frame (the mean is over those), from the fit
+    on all frames (:func:`_diagonalise`, ``X`` its points at the weights) by the exact
+    update for leaving out a block of rows: with ``M = A + lam R`` and ``B`` the fold's
+    weighted ray-constraint rows (2 per frame), the fit on the other frames is
+
+        beta_-h = beta - M^-1 B^T (I - B M^-1 B^T)^-1 (y - B beta),
+
+    and ``M^-1 = K diag(h) K^T`` (``K``: the constant's inverse Cholesky factor beside
+    ``H``; ``h = (1, 1, 1, 1 / (ev + lam))``) for every weight. Per fold and weight this is
+    one factorisation of ``2m`` rows (m: the fold's frames) instead of an
+    eigendecomposition of ``3k - 3`` rows per fold. Where the held-out frames are needed
+    to determine the fit, ``I - B M^-1 B^T`` is singular and the RMS is inf."""
+    k = Phi.shape[1]
+    n3, dtype = 3 * k, P.dtype
+    frames, real = _fold_frames(P.shape[0], folds)  # (folds, m), static
+    m = frames.shape[1]
+    _, _, Q, q = _frame_blocks(P, uv, w)
+    K = jnp.concatenate([jnp.zeros((n3, 3), dtype).at[:3].set(diag.Cinv.T), diag.H], 1)
+    U = jnp.einsum("fu,uan->fan", Phi, K.reshape(k, 3, n3))  # Theta_f K: (F, 3, 3k)
+    sw = jnp.sqrt(w)
+    B = sw[:, None, None] * jnp.sum(Q[:, :, :, None] * U[:, None, :, :], axis=2)  # (F, 2, 3k)
+    r = sw[:, None, None] * (q[:, :, None] - jnp.sum(Q[:, :, :, None] * X[:, None], axis=2))
+    h = jnp.concatenate(
+        [jnp.ones((grid.shape[0], 3), dtype), 1.0 / (diag.ev[None, :] + grid[:, None])], 1
+    )  # (G, 3k)
+    real_rows = jnp.asarray(np.repeat(real, 2, axis=1), dtype)  # (folds, 2m)
+    Bh = B[frames].reshape(folds, 2 * m, n3) * real_rows[:, :, None]
+    rh = jnp.moveaxis(r[frames].reshape(folds, 2 * m, -1), 2, 1) * real_rows[:, None, :]
+    G, eye = grid.shape[0], jnp.eye(2 * m, dtype=dtype)
+    Uh = U[frames].reshape(folds, 3 * m, n3)
+    if m <= PAIRED_FOLD_FRAMES:  # every entry needed, at every weight, in one product
+        i, j = np.triu_indices(2 * m)  # the distinct entries of B M^-1 B^T
+        prods = jnp.concatenate(
+            [Bh[:, i] * Bh[:, j], (Uh[:, :, None] * Bh[:, None]).reshape(folds, -1, n3)], 1
+        )
+        vals = jnp.moveaxis((prods.reshape(-1, n3) @ h.T).reshape(folds, -1, G), 2, 1)
+        Hh = vals[..., : i.size][..., _sym_index(2 * m)]  # (folds, G, 2m, 2m)
+        cross = vals[..., i.size :].reshape(folds, G, 3 * m, 2 * m)  # Theta M^-1 B^T
+    else:
+        Hh = jnp.einsum("sin,gn,sjn->sgij", Bh, h, Bh)
+    systems = (eye - Hh.reshape(-1, 2 * m, 2 * m), rh.reshape(-1, 2 * m))
+    if 2 * m <= SMALL_FOLD_ROWS:  # written-out Cholesky, all folds and weights at once
+        s = jax.vmap(solve_spd_small)(*systems)
+    else:  # one fold and weight per step: an unbatched LAPACK call
+
+        def solve(a):
+            return jax.scipy.linalg.cho_solve((jnp.linalg.cholesky(a[0]), True), a[1])
+
+        s = jax.lax.map(solve, systems)
+    s = s.reshape(folds, G, 2 * m)
+    if m <= PAIRED_FOLD_FRAMES:
+        shift = jnp.sum(cross * s[:, :, None, :], axis=3)
+    else:
+        shift = jnp.einsum("sin,sgn->sgi", Uh, h * jnp.einsum("sin,sgi->sgn", Bh, s))
+    shift = shift.reshape(folds, G, m, 3)
+    Xh = jnp.moveaxis(X[frames], 3, 1) - shift  # (folds, G, m, 3)
+    observed = jnp.asarray(real) & (w[frames] > 0)
+    rms = jax.vmap(
+        jax.vmap(_reprojection_rms, in_axes=(None, None, 0, None)), in_axes=(0, 0, 0, 0)
+    )(P[frames], uv[frames], Xh, observed)
+    return jnp.where(jnp.isfinite(rms), rms, jnp.inf), jnp.any(observed, axis=1)
+
+
+class _Scored(eqx.Module):
+    """One track's criterion over the grid and its fit at every weight."""
+
+    diag: _Diagonal
+    X: Array  # (F, 3, G) points
+    B: Array  # (3k, G) coefficients
+    Q: Array  # (F, 2, 3) ray constraints
+    q: Array  # (F, 2)
+    score: Array  # (G,) held-out RMS [px] (K-fold) or sqrt(GCV)
+    gain: Array  # (G,)
+    criterion: Array  # (G,)
+
+    def choice(self, grid) -> PenaltyChoice:
+        return PenaltyChoice(
+            lam=grid[jnp.argmin(self.criterion)],
+            grid=grid,
+            cv_rms_px=self.score,
+            gain=self.gain,
+            criterion=self.criterion,
+        )
+
+
+def _score(P, uv, Phi, Lg, w, rough, grid, healthy_gain, folds: int | None) -> _Scored:
+    """K-fold (``folds``, static) or, for None, generalised cross-validation of one track
+    over ``grid``, all from one eigendecomposition of all frames (:func:`_diagonalise`):
+    the fit and the gain at every weight, each fold's held-out points by
+    :func:`_held_out_rms`, GCV as in the module notes."""
+    diag = _diagonalise(P, uv, Phi, w, rough)
+    X, B = _points_at(Phi, diag, grid)
+    _, _, Q, q = _frame_blocks(P, uv, w)
+    if folds is None:
+        rows = 2 * jnp.sum(w > 0)
+        r = q[:, :, None] - jnp.sum(Q[:, :, :, None] * X[:, None, :, :], axis=2)  # (F, 2, G)
+        rss = jnp.sum(w[:, None, None] * r * r, axis=(0, 1))
+        edf = 3 + jnp.sum(diag.ev[:, None] / (diag.ev[:, None] + grid[None, :]), axis=0)
+        dof = rows - edf
+        gcv = rows * rss / jnp.where(dof > 0, dof, 1.0) ** 2
+        score = jnp.sqrt(jnp.where(dof > 0, gcv, jnp.inf))
+    else:
+        rms, counted = _held_out_rms(P, uv, Phi, w, diag, X, grid, folds)
+        score = jnp.sum(jnp.where(counted[:, None], rms, 0.0), 0) / jnp.maximum(jnp.sum(counted), 1)
+    gain = diag.gain(Lg, _frame_spread(Q, w)[1], grid)
     crit = score if healthy_gain is None else score * jnp.maximum(1.0, gain / healthy_gain)
     crit = jnp.where(jnp.isfinite(crit), crit, jnp.inf)
-    return PenaltyChoice(
-        lam=grid[jnp.argmin(crit)], grid=grid, cv_rms_px=score, gain=gain, criterion=crit
-    )
+    return _Scored(diag, X, B, Q, q, score, gain, crit)
+
+
+@eqx.filter_jit
+def _cv(P, uv, Phi, w, rough, grid, folds, healthy_gain):
+    """K-fold choice of one track (``folds`` static; :func:`_score`)."""
+    Lg = jnp.linalg.cholesky(Phi.T @ Phi)  # Theta^T Theta = Lg Lg^T (k x k: negligible)
+    return _score(P, uv, Phi, Lg, w, rough, grid, healthy_gain, folds).choice(grid)
 
 
 #: reprojection RMS [px] above which a regularised fit is DEGENERATE (see
@@ -255,6 +371,15 @@ def _cv(P, uv, Phi, w, rough, grid, held, healthy_gain):
 #: with status OK reproject at up to 0.85 px RMS with 0.3 px noise and 1.6 px with 1 px
 #: noise; fits collapsed towards a slow camera at 8-5986 px.
 MAX_RMS_PX = 5.0
+
+
+def _check_folds(folds, num_frames: int) -> None:
+    if isinstance(folds, bool) or not isinstance(folds, (int, np.integer)):
+        raise ValueError(f"folds: expected an int, got {folds!r}")
+    if not 2 <= folds <= num_frames:
+        raise ValueError(
+            f"folds: expected 2 <= folds <= F = {num_frames} (F: leave-one-frame-out), got {folds}"
+        )
 
 
 def _check_max_rms(max_rms_px) -> None:
@@ -353,30 +478,15 @@ def regularised_covariance(
     )
 
 
-#: tracks per step of the cross-validation loop on a CPU (one: each fold's
-#: eigendecomposition is then one unbatched LAPACK call) and on an accelerator (each track
-#: holds a few 3k x 3k matrices per fold, so all at once would not fit for large N)
+#: tracks per step of the choice's loop on a CPU (one: each eigendecomposition is then one
+#: unbatched LAPACK call) and on an accelerator (each track holds a few 3k x 3k matrices,
+#: so all at once would not fit for large N)
 CV_BATCH = 1
 CV_BATCH_ACCELERATOR = 64
 #: the conditioning gain above which the drivers' fits are DEGENERATE (the solver's default)
 MAX_GAIN = 20.0
 #: how the batched driver chooses the penalty weight (see reconstruct_regularised_points)
 CRITERIA = ("kfold", "gcv")
-
-
-@functools.partial(jax.jit, static_argnames=("healthy_gain", "cv_tracks", "cv_per_step"))
-def _kfold_choice(P, uv, Phi, w, rough, grid, held, healthy_gain, cv_tracks, cv_per_step):
-    """K-fold choice per track, or (``cv_tracks``: indices of the tracks whose mean
-    criterion decides) one shared weight; the fits are left to the solver, which can then
-    run on every core (:func:`jaxtraj._batching.on_cores`; this choice calls LAPACK and
-    runs once)."""
-    sel = slice(None) if cv_tracks is None else np.asarray(cv_tracks)
-    choice = map_points(
-        lambda a: _cv(P, a[0], Phi, a[1], rough, grid, held, healthy_gain),
-        (uv[sel], w[sel]),
-        cv_per_step,
-    )
-    return choice if cv_tracks is None else _shared(choice, grid, cv_tracks)
 
 
 def _shared(choice: PenaltyChoice, grid, cv_tracks) -> PenaltyChoice:
@@ -394,61 +504,43 @@ def _shared(choice: PenaltyChoice, grid, cv_tracks) -> PenaltyChoice:
     )
 
 
-#: tracks per step of the GCV loop: one on a CPU (each step's eigendecomposition is then
-#: one unbatched LAPACK call), 64 on an accelerator (each track holds a few 3k x 3k
-#: matrices, so all at once would not fit for large N)
-GCV_BATCH = 1
-GCV_BATCH_ACCELERATOR = 64
-
-
-def _gcv_track(P, uv, Phi, Lg, w, rough, grid, healthy_gain, max_gain):
-    """Generalised cross-validation of one track over ``grid`` and its fit at the chosen
-    weight (module notes; the fit at every weight from :func:`_diagonalise`):
-    ``(Reconstruction, PenaltyChoice)``."""
+def _chosen_track(P, uv, Phi, Lg, w, rough, grid, healthy_gain, max_gain, folds):
+    """The choice of one track (:func:`_score`; ``folds`` None for GCV) and its fit at the
+    chosen weight from the same decomposition: ``(Reconstruction, PenaltyChoice)``."""
     k = Phi.shape[1]
     observed = w > 0
-    _, _, Q, q = _frame_blocks(P, uv, w)
-    rows = 2 * jnp.sum(observed)
-    diag = _diagonalise(P, uv, Phi, w, rough)
-    X, B = _points_at(Phi, diag, grid)
-    r = q[:, :, None] - jnp.sum(Q[:, :, :, None] * X[:, None, :, :], axis=2)  # (F, 2, G)
-    rss = jnp.sum(w[:, None, None] * r * r, axis=(0, 1))
-    edf = 3 + jnp.sum(diag.ev[:, None] / (diag.ev[:, None] + grid[None, :]), axis=0)
-    dof = rows - edf
-    score = jnp.sqrt(jnp.where(dof > 0, rows * rss / jnp.where(dof > 0, dof, 1.0) ** 2, jnp.inf))
-    gain = diag.gain(Lg, _frame_spread(Q, w)[1], grid)
-    crit = score if healthy_gain is None else score * jnp.maximum(1.0, gain / healthy_gain)
-    crit = jnp.where(jnp.isfinite(crit), crit, jnp.inf)
-    i = jnp.argmin(crit)
-    beta = B[:, i]
-    coeffs = beta.reshape(k, 3)
-    points = X[:, :, i]
+    sc = _score(P, uv, Phi, Lg, w, rough, grid, healthy_gain, folds)
+    i = jnp.argmin(sc.criterion)
+    gain, beta, points = sc.gain[i], sc.B[:, i], sc.X[:, :, i]
     finite = jnp.all(jnp.isfinite(uv), axis=1) | ~observed
-    kappa, rel = _ray_checks(P, points, Q, observed, gain[i])
-    degenerate = (gain[i] > max_gain) | ~jnp.isfinite(gain[i]) | ~jnp.all(jnp.isfinite(beta))
+    kappa, rel = _ray_checks(P, points, sc.Q, observed, gain)
+    degenerate = (gain > max_gain) | ~jnp.isfinite(gain) | ~jnp.all(jnp.isfinite(beta))
     degenerate = degenerate | ~(kappa <= MAX_DEPTH_UNCERTAINTY) | (rel > MAX_RELATIVE_ERROR)
     n_obs = jnp.sum(observed).astype(jnp.int32)
     res = Reconstruction(
-        coeffs=coeffs,
+        coeffs=beta.reshape(k, 3),
         points=points,
         rms_px=_reprojection_rms(P, uv, points, observed),
-        gain=gain[i],
+        gain=gain,
         num_observed=n_obs,
         status=_status(finite, P, n_obs, k, True, degenerate),
         depth_uncertainty=kappa,
         relative_error=rel,
     )
-    choice = PenaltyChoice(lam=grid[i], grid=grid, cv_rms_px=score, gain=gain, criterion=crit)
-    return res, choice
+    return res, sc.choice(grid)
 
 
-@functools.partial(jax.jit, static_argnames=("healthy_gain", "per_step"))
-def _regularised_points_gcv(P, uv, Phi, w, rough, grid, healthy_gain, per_step):
+@functools.partial(jax.jit, static_argnames=("healthy_gain", "folds", "cv_tracks", "per_step"))
+def _chosen_points(P, uv, Phi, w, rough, grid, healthy_gain, folds, cv_tracks, per_step):
+    """:func:`_chosen_track` over the tracks (``cv_tracks``: only those; ``folds`` None for
+    GCV); its eigendecompositions and factorisations are LAPACK calls, so this runs once
+    (not split over the cores)."""
     Lg = jnp.linalg.cholesky(Phi.T @ Phi)  # Theta^T Theta = Lg Lg^T, shared by the tracks
     max_gain = jnp.asarray(MAX_GAIN, P.dtype)
+    sel = slice(None) if cv_tracks is None else np.asarray(cv_tracks)
     return map_points(
-        lambda a: _gcv_track(P, a[0], Phi, Lg, a[1], rough, grid, healthy_gain, max_gain),
-        (uv, w),
+        lambda a: _chosen_track(P, a[0], Phi, Lg, a[1], rough, grid, healthy_gain, max_gain, folds),
+        (uv[sel], w[sel]),
         per_step,
     )
 
@@ -492,16 +584,17 @@ def reconstruct_regularised_points(
     cross-validated).
 
     ``criterion``: ``"kfold"`` (default) cross-validates with ``folds`` interleaved folds
-    of held-out frames; ``"gcv"`` uses generalised cross-validation from one
-    eigendecomposition per track (module notes; ``folds`` is then unused), and with a
-    weight per point returns the fit at the chosen weight from the same decomposition.
-    ``max_rms_px``: as for :func:`reconstruct_regularised` (the statuses are the same).
+    of held-out frames (2 to F; ``folds = F``: leave-one-frame-out); ``"gcv"`` uses
+    generalised cross-validation (module notes; ``folds`` is then unused). Both come from
+    one eigendecomposition per track, and with a weight per point the fit at the chosen
+    weight comes from the same decomposition (its gain is the eigenbasis bound, within a
+    few per cent of the solver's). ``max_rms_px``: as for :func:`reconstruct_regularised`
+    (the statuses are the same).
 
-    Cost: per cross-validated track, K-fold: ``folds + 1`` symmetric eigendecompositions
-    of ``3k - 3`` rows (module notes) and a few matrix products per grid value; these, not
-    the assembly, dominate for the default k = min(F, 60): about 26-31 ms per track at
-    F = 150 on 2 cores (Intel Xeon, 5 folds, 15 grid values). GCV: one eigendecomposition
-    and a few matrix products, about 5-6 ms per track. A shared weight pays the choice for
+    Cost per cross-validated track at F = 150, k = 60, 15 grid values (2-core Intel Xeon,
+    one core: LAPACK calls are not split): 5 folds about 12-14 ms (one eigendecomposition
+    of ``3k - 3`` rows and 75 factorisations of the 60 held-out rows),
+    leave-one-frame-out about 5 ms, GCV about 4 ms. A shared weight pays the choice for
     ``cv_points`` tracks only, then one solve per point (README: per-point cost of the
     batched drivers). A shared weight suits points of one rigid workpiece (the same
     motion, the same cameras and noise); points that move differently want their own.
@@ -516,8 +609,8 @@ def reconstruct_regularised_points(
         check_shape("weights", weights, np.shape(uv)[:2], "(N, F): one weight per pixel")
     check_finite("P", P, hint="Projection matrices must be finite.")
     check_tracks(uv, weights)
-    if folds < 2:
-        raise ValueError(f"folds: expected >= 2, got {folds}")
+    if criterion == "kfold":
+        _check_folds(folds, F)
     if cv_points is not None and (
         isinstance(cv_points, bool) or not isinstance(cv_points, (int, np.integer)) or cv_points < 1
     ):
@@ -548,23 +641,14 @@ def reconstruct_regularised_points(
         return solved(jnp.asarray(lam, dtype) * rough, None)
     grid = jnp.logspace(-4, 10, 15, dtype=dtype) if grid is None else jnp.asarray(grid, dtype)
     check_shape("grid", grid, (None,), "(G,) penalty weights")
-    held = jnp.asarray(_fold_masks(F, folds))
     healthy = float(healthy_gain) if rule == "gain_weighted" else None
     tracks = _spread_tracks(np.shape(uv)[0], cv_points) if shared else None
-    if criterion == "gcv":
-        gcv_per_step = points_per_step(GCV_BATCH, GCV_BATCH_ACCELERATOR, uv)
-        if tracks is None:
-            return flagged(
-                *_regularised_points_gcv(P, uv, Phi, w, rough, grid, healthy, gcv_per_step)
-            )
-        sel = np.asarray(tracks)
-        _, choice = _regularised_points_gcv(
-            P, uv[sel], Phi, w[sel], rough, grid, healthy, gcv_per_step
-        )
-        choice = _shared(choice, grid, tracks)
-        return solved(choice.lam[0] * rough, choice)
     cv_per_step = points_per_step(CV_BATCH, CV_BATCH_ACCELERATOR, uv)
-    choice = _kfold_choice(P, uv, Phi, w, rough, grid, held, healthy, tracks, cv_per_step)
-    if tracks is None:
-        return solved(choice.lam[:, None] * rough[None, :], choice)  # a weight per point
+    folds_ = None if criterion == "gcv" else folds
+    if tracks is None:  # a weight per point: the fits come from the choice's decomposition
+        return flagged(
+            *_chosen_points(P, uv, Phi, w, rough, grid, healthy, folds_, None, cv_per_step)
+        )
+    _, choice = _chosen_points(P, uv, Phi, w, rough, grid, healthy, folds_, tracks, cv_per_step)
+    choice = _shared(choice, grid, tracks)
     return solved(choice.lam[0] * rough, choice)
