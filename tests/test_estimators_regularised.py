@@ -84,14 +84,14 @@ def test_gain_weighted_penalty_choice_on_a_fast_camera():
     assert float(chosen.gain) == pytest.approx(float(gain[int(np.argmin(choice.criterion))]))
 
 
-@pytest.mark.parametrize("folds", [3, 4, 30])  # held-out blocks of 20, 16 and 2 rows
+@pytest.mark.parametrize("folds", [3, 4, 20, 30])  # held-out blocks of 20, 16, 4 and 2 rows
 def test_kfold_curve_equals_refits_of_each_fold(folds):
     """The K-fold choice's held-out RMS at every weight (from the fit on all frames and the
     exact update for leaving each fold out) equals refitting each fold's training frames
-    with the solver, a missing frame included and folds of unequal size (30 frames in 4),
-    and its gain that of the solver on all frames. The three fold sizes take the three
-    ways of forming and solving the held-out blocks (LAPACK, written-out Cholesky, one
-    product of row pairs: leave-one-frame-out)."""
+    with the solver, a missing frame included and folds of unequal size (30 frames in 4 or
+    20), and its gain that of the solver on all frames. The fold sizes take the three ways
+    of forming and solving the held-out blocks (LAPACK; written-out Cholesky; one product
+    of row pairs, for folds of 2 frames and for leave-one-frame-out)."""
     s = make_scene(jax.random.PRNGKey(8), n_frames=30, noise_px=0.5)
     basis = jt.DCTBasis.from_times(s.times, 6)
     Phi, rough = basis(s.times), roughness_penalty(basis)
