@@ -160,9 +160,9 @@ def select_penalty_cv(
     unit roughness) logarithmically.
     """
     check_shape("times", times, (np.shape(P)[0],), "one timestamp per frame of P")
-    _check_folds(folds, np.shape(P)[0])
-    check_rule(rule, healthy_gain)
     F = np.shape(P)[0]
+    _check_folds(folds, F)
+    check_rule(rule, healthy_gain)
     dtype = jnp.result_type(jnp.asarray(P).dtype, jnp.float32)
     grid = jnp.logspace(-4, 10, 15, dtype=dtype) if grid is None else jnp.asarray(grid, dtype)
     check_shape("grid", grid, (None,), "(G,) penalty weights")
@@ -195,13 +195,20 @@ class _Diagonal(eqx.Module):
         """(3k, G) coefficients at the weights ``grid``."""
         return self.Eb[:, None] + self.H @ (self.z[:, None] / (self.ev[:, None] + grid[None, :]))
 
+    def factor(self):
+        """(3k, 3k) ``K`` with ``(A + lam R)^-1 = K diag(h) K^T``, ``h = (1, 1, 1,
+        1 / (ev + lam))``: the constant's inverse Cholesky factor beside ``H``."""
+        n3 = self.H.shape[0]
+        return jnp.concatenate(
+            [jnp.zeros((n3, 3), self.H.dtype).at[:3].set(self.Cinv.T), self.H], 1
+        )
+
     def gain(self, Lg, spread_hi, grid):
         """(G,) the solver's conditioning-gain bound at each weight: the top eigenvalue of
         ``R N^-1 A N^-1 R^T = K diag(h) K^T`` (``Theta^T Theta = R^T R``, 8 Lanczos steps)."""
         n3, dtype = self.H.shape[0], self.H.dtype
         k = n3 // 3
-        cols = jnp.concatenate([jnp.zeros((n3, 3), dtype).at[:3].set(self.Cinv.T), self.H], 1)
-        K = jnp.einsum("ji,jan->ian", Lg, cols.reshape(k, 3, n3)).reshape(n3, n3)
+        K = jnp.einsum("ji,jan->ian", Lg, self.factor().reshape(k, 3, n3)).reshape(n3, n3)
         KtK = K.T @ K
         v0 = 1.0 + 0.1 * jnp.modf(jnp.arange(n3) * 0.6180339887498949)[0].astype(dtype)
         ev = self.ev
@@ -247,17 +254,18 @@ SMALL_FOLD_ROWS = 16
 PAIRED_FOLD_FRAMES = 2
 
 
-def _held_out_rms(P, uv, Phi, w, diag: _Diagonal, X, grid, folds: int):
+def _held_out_rms(P, uv, Phi, w, Q, q, diag: _Diagonal, X, grid, folds: int):
     """(folds, G) held-out reprojection RMS [px] of each fold at each weight and (folds,)
     whether the fold holds an observed frame (the mean is over those), from the fit
-    on all frames (:func:`_diagonalise`, ``X`` its points at the weights) by the exact
+    on all frames (:func:`_diagonalise`, ``X`` its points at the weights; ``Q, q`` the
+    frames' ray constraints, :func:`jaxtraj.solve._frame_blocks`) by the exact
     update for leaving out a block of rows: with ``M = A + lam R`` and ``B`` the fold's
     weighted ray-constraint rows (2 per frame), the fit on the other frames is
 
         beta_-h = beta - M^-1 B^T (I - B M^-1 B^T)^-1 (y - B beta),
 
     and ``M^-1 = K diag(h) K^T`` (``K``: the constant's inverse Cholesky factor beside
-    ``H``; ``h = (1, 1, 1, 1 / (ev + lam))``) for every weight. Per fold and weight this is
+    ``H``, :meth:`_Diagonal.factor`) for every weight. Per fold and weight this is
     one factorisation of ``2m`` rows (m: the fold's frames) instead of an
     eigendecomposition of ``3k - 3`` rows per fold. Where the held-out frames are needed
     to determine the fit, ``I - B M^-1 B^T`` is singular and the RMS is inf."""
@@ -265,9 +273,7 @@ def _held_out_rms(P, uv, Phi, w, diag: _Diagonal, X, grid, folds: int):
     n3, dtype = 3 * k, P.dtype
     frames, real = _fold_frames(P.shape[0], folds)  # (folds, m), static
     m = frames.shape[1]
-    _, _, Q, q = _frame_blocks(P, uv, w)
-    K = jnp.concatenate([jnp.zeros((n3, 3), dtype).at[:3].set(diag.Cinv.T), diag.H], 1)
-    U = jnp.einsum("fu,uan->fan", Phi, K.reshape(k, 3, n3))  # Theta_f K: (F, 3, 3k)
+    U = jnp.einsum("fu,uan->fan", Phi, diag.factor().reshape(k, 3, n3))  # Theta_f K: (F, 3, 3k)
     sw = jnp.sqrt(w)
     B = sw[:, None, None] * jnp.sum(Q[:, :, :, None] * U[:, None, :, :], axis=2)  # (F, 2, 3k)
     r = sw[:, None, None] * (q[:, :, None] - jnp.sum(Q[:, :, :, None] * X[:, None], axis=2))
@@ -315,11 +321,9 @@ def _held_out_rms(P, uv, Phi, w, diag: _Diagonal, X, grid, folds: int):
 class _Scored(eqx.Module):
     """One track's criterion over the grid and its fit at every weight."""
 
-    diag: _Diagonal
     X: Array  # (F, 3, G) points
     B: Array  # (3k, G) coefficients
     Q: Array  # (F, 2, 3) ray constraints
-    q: Array  # (F, 2)
     score: Array  # (G,) held-out RMS [px] (K-fold) or sqrt(GCV)
     gain: Array  # (G,)
     criterion: Array  # (G,)
@@ -351,12 +355,12 @@ def _score(P, uv, Phi, Lg, w, rough, grid, healthy_gain, folds: int | None) -> _
         gcv = rows * rss / jnp.where(dof > 0, dof, 1.0) ** 2
         score = jnp.sqrt(jnp.where(dof > 0, gcv, jnp.inf))
     else:
-        rms, counted = _held_out_rms(P, uv, Phi, w, diag, X, grid, folds)
+        rms, counted = _held_out_rms(P, uv, Phi, w, Q, q, diag, X, grid, folds)
         score = jnp.sum(jnp.where(counted[:, None], rms, 0.0), 0) / jnp.maximum(jnp.sum(counted), 1)
     gain = diag.gain(Lg, _frame_spread(Q, w)[1], grid)
     crit = score if healthy_gain is None else score * jnp.maximum(1.0, gain / healthy_gain)
     crit = jnp.where(jnp.isfinite(crit), crit, jnp.inf)
-    return _Scored(diag, X, B, Q, q, score, gain, crit)
+    return _Scored(X, B, Q, score, gain, crit)
 
 
 @eqx.filter_jit
