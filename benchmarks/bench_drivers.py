@@ -7,11 +7,12 @@ Usage::
 
     python benchmarks/bench_drivers.py [--points 64] [--only select_k,regularised]
 
-The regularised DCT's per-point 5-fold penalty choice is the slowest (see the README), so
-it runs on ``--regularised-points`` points (default 16); with a shared weight it
-cross-validates 16 tracks and solves all N, so its per-point cost falls with N (the
-issue's size: N = 2000). The per-point choices by leave-one-frame-out cross-validation
-(``folds=F``) and generalised cross-validation (``criterion="gcv"``) run on all N.
+The regularised DCT's per-point 5-fold penalty choice is the slowest (see the README); it
+runs on ``--regularised-points`` points (default: all N; 16 before 2026-12-07, when it
+cost 4x more and ran on one core). With a shared weight it cross-validates 16 tracks and
+solves all N, so its per-point cost falls with N (the issue's size: N = 2000). The
+per-point choices by leave-one-frame-out cross-validation (``folds=F``) and generalised
+cross-validation (``criterion="gcv"``) run on all N.
 """
 
 from __future__ import annotations
@@ -79,7 +80,7 @@ def cases(n: int, n_reg: int) -> dict:
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--points", type=int, default=64)
-    parser.add_argument("--regularised-points", type=int, default=16)
+    parser.add_argument("--regularised-points", type=int, default=None, help="default: --points")
     parser.add_argument("--only", default=None, help="comma-separated name fragments")
     parser.add_argument("--repeats", type=int, default=3)
     args = parser.parse_args(argv)
@@ -87,7 +88,8 @@ def main(argv: list[str] | None = None) -> int:
     print("| driver | points | first call [s] | warm [ms/point] |")
     print("|---|---|---|---|")
     only = None if args.only is None else args.only.split(",")
-    for name, (n, fn) in cases(args.points, args.regularised_points).items():
+    n_reg = args.points if args.regularised_points is None else args.regularised_points
+    for name, (n, fn) in cases(args.points, n_reg).items():
         if only and not any(o in name for o in only):
             continue
         t0 = time.perf_counter()

@@ -21,25 +21,37 @@ results are the same up to rounding whichever size is used.
 
 **Every core of a CPU.** XLA:CPU runs such a loop on one core: it does not run the steps,
 or two loops over halves of the points in one program, side by side. Called eagerly on a
-CPU, the drivers whose kernels call no LAPACK routine (:func:`jaxtraj.reconstruct_points`,
-:func:`jaxtraj.estimate_points`, :func:`jaxtraj.estimators.select_k_points`, the fits
-of :func:`jaxtraj.estimators.reconstruct_regularised_points` once its weights are chosen,
-and the chunked batch runner) therefore go through :func:`on_cores`: the points are split into
-one chunk per core and the same compiled kernel runs on each chunk from its own thread
-(JAX releases the interpreter lock while a program runs). Each point's result is the same
-as in one call, up to rounding where its loop group changes (the last, padded group).
-Kernels with LAPACK calls are not split: two of them running at once on jaxlib 0.10.2
+CPU, the drivers whose kernels make no batched LAPACK call (:func:`jaxtraj.reconstruct_points`,
+:func:`jaxtraj.estimate_points`, :func:`jaxtraj.estimators.select_k_points`,
+:func:`jaxtraj.estimators.reconstruct_regularised_points` - its per-track choice, whose
+LAPACK calls are unbatched, one track per loop step, and its fits - and the chunked batch
+runner) therefore go through :func:`on_cores`: the points are split into one chunk per
+core and the same compiled kernel runs on each chunk from its own thread (JAX releases the
+interpreter lock while a program runs). Each point's result is the same as in one call,
+up to rounding where its loop group changes (the last, padded group). Under ``jit``,
+``vmap`` or ``grad`` (traced inputs), on an accelerator, or with too few points, the
+kernel runs once as before; ``JAXTRAJ_CPU_THREADS=1`` turns the split off. Kernels with
+batched LAPACK calls are not split: two of them running at once on jaxlib 0.10.2
 (``refine_points``, whose Levenberg-Marquardt steps call batched QR) were seen to stop
-for good with every XLA worker idle. Under ``jit``, ``vmap`` or ``grad`` (traced inputs),
-on an accelerator, or with too few points, the kernel runs once as before;
-``JAXTRAJ_CPU_THREADS=1`` turns the split off.
+for good with every XLA worker idle; the regularised DCT's split choice did not (300
+split calls of its 5-fold choice on 2 cores, jaxlib 0.10.2).
+
+**One BLAS thread for LAPACK.** JAX's CPU LAPACK calls go to SciPy's OpenBLAS, which by
+default runs every call on a thread per core. On jaxtraj's small systems (3x3 to
+180x180) that costs more than it gains: with one OpenBLAS thread the regularised DCT's
+5-fold choice took 6.4 instead of 9.3 ms per point in one call and ``refine_points`` 2.8
+instead of 4.7 ms (2-core Intel Xeon, F = 150), and only with one thread each can the
+two cores each run a chunk of tracks. The drivers that call LAPACK therefore run inside
+:func:`one_blas_thread`.
 """
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import os
-from collections.abc import Callable
+import threading
+from collections.abc import Callable, Iterator
 from concurrent.futures import ThreadPoolExecutor
 
 import jax
@@ -51,6 +63,7 @@ __all__ = [
     "in_threads",
     "map_points",
     "on_cores",
+    "one_blas_thread",
     "platform_of",
     "points_per_step",
 ]
@@ -121,14 +134,21 @@ def in_threads(fn: Callable, args: list, workers: int) -> list:
         return list(pool.map(carried(fn), args))
 
 
-def on_cores(kernel: Callable, points, others=(), min_per_core: int = MIN_POINTS_PER_CORE):
+def on_cores(
+    kernel: Callable,
+    points,
+    others=(),
+    min_per_core: int = MIN_POINTS_PER_CORE,
+    align: int = ALIGN,
+):
     """``kernel(points)`` with the leading axis of the pytree ``points`` split over the CPU
     cores (module notes): one chunk per core, all of one size (the last padded with copies
     of the last point, so one compilation serves every chunk), each run from its own
     thread, the results concatenated. ``others``: the kernel's other array arguments,
     only checked for tracers. Runs ``kernel(points)`` once when any input is traced, the
     data are not on a CPU, there is one core, or a chunk would hold fewer than
-    ``min_per_core`` points."""
+    ``min_per_core`` points. Chunk sizes are multiples of ``align`` (the kernel's loop
+    group size; 1 for a loop over single points)."""
     leaves = jax.tree_util.tree_leaves(points)
     n = leaves[0].shape[0]
     cores = cpu_cores()
@@ -139,7 +159,7 @@ def on_cores(kernel: Callable, points, others=(), min_per_core: int = MIN_POINTS
     if traced or chunks < 2 or platform_of(leaves[0]) != "cpu":
         return kernel(points)
     size = -(-n // chunks)
-    size += -size % ALIGN  # chunks start on a group boundary of the drivers' CPU loops
+    size += -size % align  # chunks start on a group boundary of the drivers' CPU loops
     parts = _split(points, chunks, size)
     results = in_threads(lambda p: jax.block_until_ready(kernel(p)), parts, chunks)
     return _join(results, n)
@@ -165,3 +185,49 @@ def _split(points, chunks: int, size: int):
 def _join(results, n: int):
     """The chunks' results concatenated in order, without the padding."""
     return jax.tree_util.tree_map(lambda *r: jnp.concatenate(r)[:n], *results)
+
+
+_blas_lock = threading.Lock()
+_blas_users = 0
+_blas_limit = None
+_blas_controller = None
+
+
+def _controller():
+    """threadpoolctl's view of the loaded BLAS libraries, made once, after loading the one
+    JAX's CPU LAPACK calls use (SciPy's, loaded by JAX only when it first compiles one)."""
+    global _blas_controller
+    if _blas_controller is None:
+        from threadpoolctl import ThreadpoolController
+
+        try:
+            import scipy.linalg.cython_lapack  # noqa: F401
+        except ImportError:  # no SciPy: nothing of JAX's to limit
+            pass
+        _blas_controller = ThreadpoolController()
+    return _blas_controller
+
+
+@contextlib.contextmanager
+def one_blas_thread() -> Iterator[None]:
+    """Run the body with one thread in every BLAS library of the process (module notes).
+
+    Process-wide while any thread is inside (the limit is set by the first to enter and
+    lifted by the last to leave, so threads that overlap cannot leave it set); under
+    tracing it only affects the trace. ``JAXTRAJ_ONE_BLAS_THREAD=0`` turns it off."""
+    global _blas_users, _blas_limit
+    if os.environ.get("JAXTRAJ_ONE_BLAS_THREAD", "1").strip() == "0":
+        yield
+        return
+    with _blas_lock:
+        if _blas_users == 0:
+            _blas_limit = _controller().limit(limits=1, user_api="blas")
+        _blas_users += 1
+    try:
+        yield
+    finally:
+        with _blas_lock:
+            _blas_users -= 1
+            if _blas_users == 0:
+                _blas_limit.restore_original_limits()
+                _blas_limit = None

@@ -240,3 +240,88 @@ def test_kernels_split_over_cores_call_no_lapack(rng):
     lin = jt.reconstruct_points(P, uv, B, w)
     lm = jax.jit(lambda c: refine._refine_points(P, uv, B, c, w, lin.status, {}))
     assert _lapack_calls(lm, lin.coeffs)  # the check sees LAPACK where it is
+
+
+def _batched_lapack_calls(fn, *args) -> dict:
+    """LAPACK custom calls of ``fn`` and whether any of their operands or results has a
+    batch axis (rank above 2)."""
+    import re
+
+    calls = {}
+    for line in fn.lower(*args).as_text().splitlines():
+        m = re.search(r"custom_call @(lapack_\w+)", line)
+        if m:
+            ranks = [s.count("x") for s in re.findall(r"tensor<([^>]*)>", line)]
+            calls[m.group(1)] = calls.get(m.group(1), False) or max(ranks, default=0) > 2
+    return calls
+
+
+def test_regularised_choice_split_over_cores_calls_lapack_unbatched(rng):
+    """The regularised DCT's per-track choice runs from several threads; its LAPACK calls
+    (eigendecomposition, the held-out Cholesky of folds of more than 8 frames) must be
+    unbatched (module notes of jaxtraj._batching). refine_points' batched QR shows that
+    the check sees a batch axis."""
+    from jaxtraj.estimators import refine, regularised
+
+    s, uv, w = _tracks(rng)
+    P, uv, w, t, B = (jnp.asarray(a) for a in (s["P"], uv, w, s["times"], s["basis"]))
+    basis = jt.DCTBasis.from_times(t, 12)
+    rough, Phi = regularised.roughness_penalty(basis), basis(t)
+    grid = jnp.logspace(-4, 10, 5)
+    for folds in (2, 5, None):  # held-out blocks of 40 rows (LAPACK), 16 rows, GCV
+        calls = _batched_lapack_calls(
+            regularised._chosen_points, P, uv, Phi, w, rough, grid, 20.0, folds, 1
+        )
+        assert "lapack_dsyevd_ffi" in calls, (folds, calls)
+        assert not any(calls.values()), (folds, calls)
+    lin = jt.reconstruct_points(P, uv, B, w)
+    lm = jax.jit(lambda c: refine._refine_points(P, uv, B, c, w, lin.status, {}))
+    assert any(_batched_lapack_calls(lm, lin.coeffs).values())
+
+
+def test_regularised_choice_split_over_cores_gives_the_one_call_numbers(rng, monkeypatch):
+    """reconstruct_regularised_points with a weight per point, its tracks in 2 chunks from
+    2 threads (7 tracks: chunks of 4, the last padded), equals one call."""
+    from jaxtraj.estimators import reconstruct_regularised_points
+
+    s, uv, w = _tracks(rng, n=7)
+    kw = dict(k=12, grid=np.logspace(-4, 10, 5))
+    monkeypatch.setenv("JAXTRAJ_CPU_THREADS", "1")
+    ref, _, ref_c = reconstruct_regularised_points(s["P"], uv, s["times"], w, **kw)
+    monkeypatch.setenv("JAXTRAJ_CPU_THREADS", "2")
+    got, _, got_c = reconstruct_regularised_points(s["P"], uv, s["times"], w, **kw)
+    np.testing.assert_array_equal(got_c.lam, ref_c.lam)
+    np.testing.assert_allclose(got_c.criterion, ref_c.criterion, rtol=1e-9)
+    np.testing.assert_allclose(got.points, ref.points, rtol=1e-9, atol=1e-12)
+    np.testing.assert_allclose(got.gain, ref.gain, rtol=1e-9)
+    np.testing.assert_array_equal(got.status, ref.status)
+
+
+def test_one_blas_thread_limits_blas_inside_and_restores_it(monkeypatch):
+    """Inside one_blas_thread every BLAS library runs one thread; the limit is lifted when
+    the last of several overlapping users leaves (not when the first does), and
+    JAXTRAJ_ONE_BLAS_THREAD=0 leaves BLAS alone."""
+    threadpoolctl = pytest.importorskip("threadpoolctl")
+
+    def threads():
+        info = threadpoolctl.threadpool_info()
+        return [i["num_threads"] for i in info if i["user_api"] == "blas"]
+
+    jt.estimators.select_penalty_cv  # noqa: B018 (the package is imported)
+    _batching._controller()  # loads JAX's LAPACK (SciPy's BLAS) first
+    before = threads()
+    assert before, "no BLAS library loaded"
+    with threadpoolctl.threadpool_limits(limits=2, user_api="blas"):
+        outer = threads()
+        first, second = _batching.one_blas_thread(), _batching.one_blas_thread()
+        first.__enter__()
+        second.__enter__()
+        assert set(threads()) == {1}
+        first.__exit__(None, None, None)  # overlapping: the second is still inside
+        assert set(threads()) == {1}
+        second.__exit__(None, None, None)
+        assert threads() == outer
+        monkeypatch.setenv("JAXTRAJ_ONE_BLAS_THREAD", "0")
+        with _batching.one_blas_thread():
+            assert threads() == outer
+    assert threads() == before

@@ -57,7 +57,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float, Int
 
-from .._batching import map_points, points_per_step
+from .._batching import map_points, on_cores, one_blas_thread, points_per_step
 from .._checks import check_finite, check_shape, check_tracks, is_concrete
 from .._linalg import cholesky_small, solve_spd_small, solve_triangular_small
 from .._spd import top_eigenvalue
@@ -172,7 +172,8 @@ def select_penalty_cv(
     P = jnp.asarray(P, dtype)
     uv = jnp.where(w[:, None] > 0, jnp.asarray(uv, dtype), 0.0)
     healthy = healthy_gain if rule == "gain_weighted" else None
-    return _cv(P, uv, Phi, w, rough, grid, folds, healthy)
+    with one_blas_thread():
+        return jax.block_until_ready(_cv(P, uv, Phi, w, rough, grid, folds, healthy))
 
 
 class _Diagonal(eqx.Module):
@@ -534,19 +535,35 @@ def _chosen_track(P, uv, Phi, Lg, w, rough, grid, healthy_gain, max_gain, folds)
     return res, sc.choice(grid)
 
 
-@functools.partial(jax.jit, static_argnames=("healthy_gain", "folds", "cv_tracks", "per_step"))
-def _chosen_points(P, uv, Phi, w, rough, grid, healthy_gain, folds, cv_tracks, per_step):
-    """:func:`_chosen_track` over the tracks (``cv_tracks``: only those; ``folds`` None for
-    GCV); its eigendecompositions and factorisations are LAPACK calls, so this runs once
-    (not split over the cores)."""
+@functools.partial(jax.jit, static_argnames=("healthy_gain", "folds", "per_step"))
+def _chosen_points(P, uv, Phi, w, rough, grid, healthy_gain, folds, per_step):
+    """:func:`_chosen_track` over the tracks (``folds`` None for GCV). Its LAPACK calls
+    (eigendecompositions, held-out factorisations) are unbatched on a CPU (``per_step``
+    1), which is why :func:`_choose` may run it from several threads."""
     Lg = jnp.linalg.cholesky(Phi.T @ Phi)  # Theta^T Theta = Lg Lg^T, shared by the tracks
     max_gain = jnp.asarray(MAX_GAIN, P.dtype)
-    sel = slice(None) if cv_tracks is None else np.asarray(cv_tracks)
     return map_points(
         lambda a: _chosen_track(P, a[0], Phi, Lg, a[1], rough, grid, healthy_gain, max_gain, folds),
-        (uv[sel], w[sel]),
+        (uv, w),
         per_step,
     )
+
+
+#: fewest tracks per core for which the per-track choice is split over the cores (each
+#: costs milliseconds, so two tracks a thread already pay for the thread)
+MIN_TRACKS_PER_CORE = 2
+
+
+def _choose(P, uv, Phi, w, rough, grid, healthy_gain, folds, per_step):
+    """:func:`_chosen_points` with the tracks split over the CPU cores
+    (:func:`jaxtraj._batching.on_cores`, one loop step per track when ``per_step`` is 1)."""
+
+    def kernel(tracks):
+        u, wt = tracks
+        return _chosen_points(P, u, Phi, wt, rough, grid, healthy_gain, folds, per_step)
+
+    align = max(per_step, 1)
+    return on_cores(kernel, (uv, w), (P,), min_per_core=MIN_TRACKS_PER_CORE, align=align)
 
 
 def _spread_tracks(n: int, m: int | None) -> tuple[int, ...]:
@@ -649,10 +666,12 @@ def reconstruct_regularised_points(
     tracks = _spread_tracks(np.shape(uv)[0], cv_points) if shared else None
     cv_per_step = points_per_step(CV_BATCH, CV_BATCH_ACCELERATOR, uv)
     folds_ = None if criterion == "gcv" else folds
-    if tracks is None:  # a weight per point: the fits come from the choice's decomposition
-        return flagged(
-            *_chosen_points(P, uv, Phi, w, rough, grid, healthy, folds_, None, cv_per_step)
+    sel = slice(None) if tracks is None else np.asarray(tracks)
+    with one_blas_thread():  # returns when the choice's LAPACK calls have run
+        chosen = jax.block_until_ready(
+            _choose(P, uv[sel], Phi, w[sel], rough, grid, healthy, folds_, cv_per_step)
         )
-    _, choice = _chosen_points(P, uv, Phi, w, rough, grid, healthy, folds_, tracks, cv_per_step)
-    choice = _shared(choice, grid, tracks)
+    if tracks is None:  # a weight per point: the fits come from the choice's decomposition
+        return flagged(*chosen)
+    choice = _shared(chosen[1], grid, tracks)
     return solved(choice.lam[0] * rough, choice)
