@@ -42,9 +42,10 @@ so each weight costs one matrix product instead of a factorisation:
 
 The eigendecompositions are LAPACK calls, one track per loop step on a CPU, never a
 batched call, and so are the held-out factorisations of folds of more than 8 frames (one
-fold and weight per step). Both criteria use the same gain-weighted rule; like every
-criterion on the pixels they are blind along the rays, which the gain weighting and
-:func:`flag_undetermined_depth` answer.
+fold and weight per step); the batched driver splits its tracks over the CPU cores and
+runs them with one BLAS thread (:mod:`jaxtraj._batching`). Both criteria use the same
+gain-weighted rule; like every criterion on the pixels they are blind along the rays,
+which the gain weighting and :func:`flag_undetermined_depth` answer.
 """
 
 from __future__ import annotations
@@ -592,8 +593,9 @@ def reconstruct_regularised_points(
     max_rms_px: float = MAX_RMS_PX,
 ) -> tuple[Reconstruction, DCTBasis, PenaltyChoice | None]:
     """:func:`reconstruct_regularised` for N points seen by the same cameras: one compiled
-    program per shape for the weight's choice (LAPACK eigendecompositions, one call) and
-    one for the fits (on a CPU split over the cores, :func:`jaxtraj._batching.on_cores`).
+    program per shape for the weight's choice (unbatched LAPACK eigendecompositions) and
+    one for the fits, each on a CPU split over the cores
+    (:func:`jaxtraj._batching.on_cores`).
 
     The penalty weight is chosen by cross-validation per point (``shared=False``), or once
     for all points (``shared=True``: the grid value with the smallest criterion averaged
@@ -612,13 +614,14 @@ def reconstruct_regularised_points(
     few per cent of the solver's). ``max_rms_px``: as for :func:`reconstruct_regularised`
     (the statuses are the same).
 
-    Cost per cross-validated track at F = 150, k = 60, 15 grid values (2-core Intel Xeon,
-    one core: LAPACK calls are not split): 5 folds about 12-14 ms (one eigendecomposition
-    of ``3k - 3`` rows and 75 factorisations of the 60 held-out rows),
-    leave-one-frame-out about 5 ms, GCV about 4 ms. A shared weight pays the choice for
-    ``cv_points`` tracks only, then one solve per point (README: per-point cost of the
-    batched drivers). A shared weight suits points of one rigid workpiece (the same
-    motion, the same cameras and noise); points that move differently want their own.
+    Cost per cross-validated track at F = 150, k = 60, 15 grid values, batched over 2000
+    tracks on a 2-core Intel Xeon (the tracks split over the cores, one BLAS thread each):
+    5 folds about 4.1 ms (one eigendecomposition of ``3k - 3`` rows and 75 factorisations
+    of the 60 held-out rows), leave-one-frame-out about 2 ms, GCV about 1.6 ms. A shared
+    weight pays the choice for ``cv_points`` tracks only, then one solve per point
+    (README: per-point cost of the batched drivers). A shared weight suits points of one
+    rigid workpiece (the same motion, the same cameras and noise); points that move
+    differently want their own.
     """
     if np.ndim(uv) != 3:
         raise ValueError(f"uv: expected shape (N, F, 2), got {np.shape(uv)}")
