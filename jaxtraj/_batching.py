@@ -41,8 +41,8 @@ default runs every call on a thread per core. On jaxtraj's small systems (3x3 to
 180x180) that costs more than it gains: with one OpenBLAS thread the regularised DCT's
 5-fold choice took 6.4 instead of 9.3 ms per point in one call and ``refine_points`` 2.8
 instead of 4.7 ms (2-core Intel Xeon, F = 150), and only with one thread each can the
-two cores each run a chunk of tracks. The drivers that call LAPACK therefore run inside
-:func:`one_blas_thread`.
+two cores each run a chunk of tracks. The drivers that call LAPACK therefore run their
+programs through :func:`with_one_blas_thread`.
 """
 
 from __future__ import annotations
@@ -66,6 +66,7 @@ __all__ = [
     "one_blas_thread",
     "platform_of",
     "points_per_step",
+    "with_one_blas_thread",
 ]
 
 #: fewest points per chunk for which :func:`on_cores` splits a batch over the cores
@@ -231,3 +232,11 @@ def one_blas_thread() -> Iterator[None]:
             if _blas_users == 0:
                 _blas_limit.restore_original_limits()
                 _blas_limit = None
+
+
+def with_one_blas_thread(fn: Callable, *args):
+    """``fn(*args)`` inside :func:`one_blas_thread`, returned once its programs have run
+    (JAX dispatches them asynchronously, so leaving the context sooner would lift the limit
+    while they run)."""
+    with one_blas_thread():
+        return jax.block_until_ready(fn(*args))

@@ -24,7 +24,7 @@ import numpy as np
 import optimistix as optx
 from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
-from .._batching import one_blas_thread
+from .._batching import with_one_blas_thread
 from .._checks import check_shape
 from .._precision import cast_floats, least_squares_dtype
 from ..solve import Status
@@ -193,5 +193,5 @@ def refine_points(
     st = jnp.zeros(N, jnp.int32) if status is None else jnp.asarray(status, jnp.int32)
     if st.shape != (N,):
         raise ValueError(f"status: expected shape ({N},), one per point, got {st.shape}")
-    with one_blas_thread():  # its QR calls are small (module notes of jaxtraj._batching)
-        return jax.block_until_ready(_refine_points(P, uv, basis, coeffs, w, st, kwargs))
+    # its QR calls are small (module notes of jaxtraj._batching)
+    return with_one_blas_thread(_refine_points, P, uv, basis, coeffs, w, st, kwargs)

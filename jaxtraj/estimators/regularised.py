@@ -58,7 +58,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float, Int
 
-from .._batching import map_points, on_cores, one_blas_thread, points_per_step
+from .._batching import map_points, on_cores, points_per_step, with_one_blas_thread
 from .._checks import check_finite, check_shape, check_tracks, is_concrete
 from .._linalg import cholesky_small, solve_spd_small, solve_triangular_small
 from .._spd import top_eigenvalue
@@ -173,8 +173,7 @@ def select_penalty_cv(
     P = jnp.asarray(P, dtype)
     uv = jnp.where(w[:, None] > 0, jnp.asarray(uv, dtype), 0.0)
     healthy = healthy_gain if rule == "gain_weighted" else None
-    with one_blas_thread():
-        return jax.block_until_ready(_cv(P, uv, Phi, w, rough, grid, folds, healthy))
+    return with_one_blas_thread(_cv, P, uv, Phi, w, rough, grid, folds, healthy)
 
 
 class _Diagonal(eqx.Module):
@@ -670,10 +669,9 @@ def reconstruct_regularised_points(
     cv_per_step = points_per_step(CV_BATCH, CV_BATCH_ACCELERATOR, uv)
     folds_ = None if criterion == "gcv" else folds
     sel = slice(None) if tracks is None else np.asarray(tracks)
-    with one_blas_thread():  # returns when the choice's LAPACK calls have run
-        chosen = jax.block_until_ready(
-            _choose(P, uv[sel], Phi, w[sel], rough, grid, healthy, folds_, cv_per_step)
-        )
+    chosen = with_one_blas_thread(
+        _choose, P, uv[sel], Phi, w[sel], rough, grid, healthy, folds_, cv_per_step
+    )
     if tracks is None:  # a weight per point: the fits come from the choice's decomposition
         return flagged(*chosen)
     choice = _shared(chosen[1], grid, tracks)
