@@ -29,7 +29,7 @@ both random cameras: what separates the design from the paper's camera.
 Usage::
 
     python benchmarks/bench_design_joint.py [--frames 60] [--starts 8] [--inner-steps 500]
-        [--replans N] [--replan-penalty 30] [--n-control 12]
+        [--replans N [--replan-move 10]] [--replan-penalty 30] [--n-control 12]
         [--estimator dct|smoother1|smoother2|pose] [--out OUT/]
         [--compare [--draws 200] [--scenes sim,cmu131_01,cmu131_03]]
         [--limits-sweep 1,2,4 [--swept velocity,acceleration,jerk] [--scenes ...]]
@@ -551,8 +551,15 @@ def main(argv: list[str] | None = None) -> int:
         type=int,
         default=0,
         metavar="N",
-        help="N more one-start warm re-plans, the prediction moved by 10 mm in a random "
-        "direction each, from the identity and from the design's inverse Hessian",
+        help="N more one-start warm re-plans, the prediction moved by --replan-move in a "
+        "random direction each, from the identity and from the design's inverse Hessian",
+    )
+    parser.add_argument(
+        "--replan-move",
+        type=float,
+        default=10.0,
+        metavar="MM",
+        help="length of the --replans moves [mm] (default 10)",
     )
     parser.add_argument(
         "--estimator",
@@ -678,14 +685,14 @@ def _replan(args, spec, res, best, move, warm_h: bool, b: int = 1):
 
 
 def replan_spread(args, spec, res, best) -> None:
-    """``--replans N``: one-start warm re-plans, each with the prediction moved by 10 mm in
-    a random direction, alternating the BFGS start (identity, the design's inverse
-    Hessian); prints each and the median and largest time of each start."""
+    """``--replans N``: one-start warm re-plans, each with the prediction moved by
+    ``--replan-move`` mm in a random direction, alternating the BFGS start (identity, the
+    design's inverse Hessian); prints each and the median and largest time of each start."""
     rng = np.random.default_rng(0)
     times = {False: [], True: []}
     for i in range(args.replans):
         d = rng.normal(size=3)
-        move = jnp.asarray(0.01 * d / np.linalg.norm(d))
+        move = jnp.asarray(1e-3 * args.replan_move * d / np.linalg.norm(d))
         for warm_h in (False, True):
             warm, seconds = _replan(args, spec, res, best, move, warm_h)
             times[warm_h].append(seconds)

@@ -151,10 +151,15 @@ def _sample_covariances(P, samples, R_w_o, layout, point, pixel_sigma):
     return jax.vmap(one)(jnp.asarray(samples, dtype))
 
 
-#: quadrature nodes in ``log s`` for :func:`gaussian_mean_norm` (step 0.25 over [-40, 40]:
-#: the integrand is smooth and decays as ``exp(-|u| / 2)`` on both sides, so the rule's
-#: relative error is ~1e-8, the cut-off tails')
-_LOG_S = jnp.linspace(-40.0, 40.0, 321)
+#: quadrature of :func:`gaussian_mean_norm`: the integrand in ``u = log s`` decays only as
+#: ``exp(-|u| / 2)`` on both sides, so the trapezoidal rule in ``u`` needed 321 nodes over
+#: [-40, 40]; the substitution ``u = 4 sinh(t)`` makes the decay double-exponential, and 33
+#: nodes over ``t`` in [-3, 3] (``u`` in [-40, 40]) give the same integral within 6e-9
+#: (relative; 27 covariances from isotropic to rank one and eigenvalue ratios of 1e6, against
+#: a rule with step 0.01 over [-90, 90]). The objective of a pose design evaluates it for
+#: every image and plausible trajectory: with 321 nodes it was half of the objective's cost.
+_DE_T = jnp.linspace(-3.0, 3.0, 33)
+_DE_SCALE = 4.0
 
 
 def gaussian_mean_norm(cov: Float[ArrayLike, "... 3 3"]) -> Float[Array, "..."]:
@@ -162,19 +167,22 @@ def gaussian_mean_norm(cov: Float[ArrayLike, "... 3 3"]) -> Float[Array, "..."]:
 
     From ``E sqrt(Y) = (4 pi)^(-1/2) int_0^inf (1 - E exp(-s Y)) s^(-3/2) ds`` with
     ``Y = |e|^2`` and ``E exp(-s Y) = det(I + 2 s cov)^(-1/2)``; the determinant is the
-    cubic in ``s`` of ``cov``'s invariants, integrated by the trapezoidal rule in ``log s``.
-    ``sqrt(tr cov)`` (Jensen's bound) is 1.09x this for an isotropic error and 1.25x for an
-    error along one axis.
+    cubic in ``s`` of ``cov``'s invariants, integrated by the trapezoidal rule after the
+    double-exponential substitution ``s = exp(4 sinh t)`` (33 nodes; relative error below
+    1e-8). ``sqrt(tr cov)`` (Jensen's bound) is 1.09x this for an isotropic error and 1.25x
+    for an error along one axis.
     """
     cov = jnp.asarray(cov)
     m = jnp.trace(cov, axis1=-2, axis2=-1)
     c = cov / m[..., None, None]
     e2 = 0.5 * (1.0 - jnp.sum(c * jnp.swapaxes(c, -1, -2), axis=(-2, -1)))
     e3 = jnp.linalg.det(c)
-    u = _LOG_S.astype(cov.dtype)
+    t = _DE_T.astype(cov.dtype)
+    u = _DE_SCALE * jnp.sinh(t)
+    # trapezoidal weights du/dt * dt (the end nodes' integrand is below 1e-8 of the sum)
+    w = _DE_SCALE * jnp.cosh(t) * (t[1] - t[0])
     s = jnp.exp(u)
     det = 1.0 + 2.0 * s + 4.0 * s**2 * e2[..., None] + 8.0 * s**3 * e3[..., None]
     f = -jnp.expm1(-0.5 * jnp.log(det)) / jnp.sqrt(s)
-    du = u[1] - u[0]
-    integral = du * (jnp.sum(f, -1) - 0.5 * (f[..., 0] + f[..., -1]))
+    integral = jnp.sum(f * w, -1)
     return jnp.sqrt(m) * integral / (2.0 * jnp.sqrt(jnp.pi))
