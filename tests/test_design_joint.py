@@ -219,10 +219,10 @@ def test_design_converges_and_holds_on_a_10x_finer_grid(scene, rng):
     stopped = np.asarray(designs.rounds) < 6  # these stopped because they had converged
     np.testing.assert_array_equal(np.asarray(again.rounds)[stopped], 0)
     np.testing.assert_allclose(np.asarray(again.theta)[stopped], np.asarray(designs.theta)[stopped])
-    # ... and a moved prediction takes no more rounds than the design did, nor than the
-    # same re-plan without the multipliers (Intel Xeon, jax 0.10.2: design [3, 4] rounds,
-    # re-plan 3 with the multipliers and 4 without; on the AMD EPYC of earlier runs the
-    # re-plan took fewer rounds than the design)
+    # ... and a moved prediction costs a fraction of a design. (The round counts are not
+    # ordered: rounding alone moved this re-plan between 3 and 4 rounds against the
+    # design's 3 and the re-plan without multipliers' 3; in evaluations the re-plan took
+    # 135-255 against the design's 1173-1344 on an Intel Xeon, jax 0.10.2.)
     warm2, replanned = design_joint_path(
         model,
         cell,
@@ -234,7 +234,7 @@ def test_design_converges_and_holds_on_a_10x_finer_grid(scene, rng):
         **kwargs,
     )
     assert bool(warm2.converged)
-    assert int(warm2.rounds) <= min(int(best.rounds), int(warm.rounds))
+    assert int(warm2.evaluations) < 0.5 * int(np.min(np.asarray(designs.evaluations)))
     # the search counts its evaluations (at least one per round) and returns its inverse
     # Hessian; the identity passed explicitly is the default, and the re-plan started from
     # the design's inverse Hessian converges too

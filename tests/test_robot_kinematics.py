@@ -15,6 +15,7 @@ from jaxtraj.robot import (
     jacobian,
     joint_frames,
     kinematic_chain,
+    link_positions,
 )
 
 # KUKA datasheet (ROS-Industrial kuka_kr16_support kr16_2): ranges and rated speeds [deg].
@@ -111,6 +112,66 @@ def test_jacobian_equals_autodiff_and_gradients_check(rng):
         np.testing.assert_allclose(J[3:, i], [W[2, 1], W[0, 2], W[1, 0]], atol=1e-12)
     position = jax.jit(lambda x: forward_kinematics(chain, x)[:3, 3])
     check_grads(position, (jnp.asarray(q),), order=1, modes=("fwd", "rev"))
+
+
+def _mixed_chain(rng):
+    """Four joints, two of them prismatic, with random origins, axes and tip."""
+
+    def pose():
+        Q, _ = np.linalg.qr(rng.normal(size=(3, 3)))
+        T = np.eye(4)
+        T[:3, :3] = Q * np.sign(np.linalg.det(Q))
+        T[:3, 3] = rng.normal(size=3)
+        return T
+
+    return kinematic_chain(
+        "mixed",
+        ["a", "b", "c", "d"],
+        np.stack([pose() for _ in range(4)]),
+        rng.normal(size=(4, 3)),
+        pose(),
+        -3 * np.ones(4),
+        3 * np.ones(4),
+        np.ones(4),
+        joint_types=["revolute", "prismatic", "revolute", "prismatic"],
+    )
+
+
+@pytest.mark.parametrize("robot", ["kr16_2", "mixed"])
+def test_link_positions_and_their_analytic_derivative(robot, rng):
+    """The frames' origins, the tip and points on it, with the geometric Jacobian as their
+    derivative: the same values and derivatives (forward and reverse, vmapped, jitted, the
+    chain traced) as autodiff through the 4x4 products of joint_frames."""
+    chain = load_robot(robot) if robot != "mixed" else _mixed_chain(rng)
+    tip_points = jnp.asarray(rng.normal(size=(2, 3)))
+    Q = jnp.asarray(rng.uniform(-1.0, 1.0, size=(4, chain.n)))
+
+    def by_frames(q, points):
+        T = joint_frames(chain, q)
+        return jnp.concatenate([T[:, :3, 3], points @ T[-1, :3, :3].T + T[-1, :3, 3]])
+
+    got = jax.vmap(lambda q: link_positions(chain, q, tip_points))(Q)
+    want = jax.vmap(lambda q: by_frames(q, tip_points))(Q)
+    assert got.shape == (4, chain.n + 3, 3)
+    np.testing.assert_allclose(got, want, atol=1e-14)
+    W = jnp.asarray(rng.normal(size=got.shape))
+
+    @jax.jit
+    def grads(ch, Q, points):  # the chain traced: its arrays are arguments
+        f = jax.vmap(lambda q, p: link_positions(ch, q, p), in_axes=(0, None))
+        return jax.grad(lambda Q, p: jnp.sum(W * f(Q, p)), argnums=(0, 1))(Q, points)
+
+    def ref(Q, p):
+        return jnp.sum(W * jax.vmap(lambda q: by_frames(q, p))(Q))
+
+    want_grads = jax.grad(ref, argnums=(0, 1))(Q, tip_points)
+    for a, b in zip(grads(chain, Q, tip_points), want_grads, strict=True):
+        np.testing.assert_allclose(a, b, atol=1e-12)
+    fwd = jax.jacfwd(lambda q: link_positions(chain, q, tip_points))(Q[0])
+    np.testing.assert_allclose(
+        fwd, jax.jacfwd(lambda q: by_frames(q, tip_points))(Q[0]), atol=1e-12
+    )
+    check_grads(lambda q: link_positions(chain, q, tip_points), (Q[1],), order=1)
 
 
 def test_with_limits_overrides_and_validates():

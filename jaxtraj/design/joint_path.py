@@ -47,7 +47,7 @@ from .._checks import check_shape
 from .._linalg import matmul_small
 from ..depth import depth_uncertainty
 from ..robot.chain import KinematicChain
-from ..robot.kinematics import joint_frames
+from ..robot.kinematics import joint_frames, link_positions
 from .bspline import bspline_basis, clamped_knots
 from .constraints import _off_axis
 
@@ -267,18 +267,17 @@ def joint_constraint_values(
     ):
         values[name] = jnp.square(model.joints(theta, d) / limit) - 1.0
     # geometry on the grid: every joint frame, the flange and the camera
+    # (positions only, with the geometric Jacobian as their derivative: link_positions)
     stride = model.geometry_stride
-    frames = matmul_small(cell.T_w_base, jax.vmap(lambda qq: joint_frames(chain, qq))(q[::stride]))
-    cam_grid = matmul_small(frames[:, -1], cell.T_f_c)[:, :3, 3]  # frames: (G / stride, n+1, 4, 4)
+    n = chain.origins.shape[0]
+    cam_in_flange = cell.T_f_c[None, :3, 3]
+    pos = jax.vmap(lambda qq: link_positions(chain, qq, cam_in_flange))(q[::stride])
+    pos = jnp.sum(cell.T_w_base[:3, :3] * pos[:, :, None, :], axis=3) + cell.T_w_base[:3, 3]
+    # pos: (G / stride, n + 2, 3): every joint frame's origin, the flange, the camera
     x_grid = jax.vmap(lambda c: jnp.interp(model.grid[::stride], model.times, c), 1, 1)(predicted)
-    heights = jnp.concatenate([frames[:, :, 2, 3], cam_grid[:, 2:3]], axis=1)
-    values["floor"] = (cell.floor_z + cell.floor_clearance - heights) / cell.floor_clearance
+    values["floor"] = (cell.floor_z + cell.floor_clearance - pos[:, :, 2]) / cell.floor_clearance
     dist = jnp.stack(
-        [
-            _swept_distance(cam_grid - x_grid),
-            _swept_distance(frames[:, -1, :3, 3] - x_grid),
-        ],
-        axis=1,
+        [_swept_distance(pos[:, n + 1] - x_grid), _swept_distance(pos[:, n] - x_grid)], axis=1
     )
     values["keep_out"] = (cell.keep_out_radius - dist) / cell.keep_out_radius
     # camera at the images

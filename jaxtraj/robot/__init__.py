@@ -21,5 +21,6 @@ from .kinematics import camera_pose as camera_pose
 from .kinematics import forward_kinematics as forward_kinematics
 from .kinematics import jacobian as jacobian
 from .kinematics import joint_frames as joint_frames
+from .kinematics import link_positions as link_positions
 from .limits import default_acceleration as default_acceleration
 from .limits import default_jerk as default_jerk

@@ -11,13 +11,22 @@ For joint ``i`` with fixed origin ``O_i``, unit axis ``a_i`` and value ``q_i``:
 
 from __future__ import annotations
 
+import jax
 import jax.numpy as jnp
+import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
 from .._linalg import matmul_small
 from .chain import KinematicChain
 
-__all__ = ["axis_rotation", "camera_pose", "forward_kinematics", "jacobian", "joint_frames"]
+__all__ = [
+    "axis_rotation",
+    "camera_pose",
+    "forward_kinematics",
+    "jacobian",
+    "joint_frames",
+    "link_positions",
+]
 
 
 def axis_rotation(axis: Float[Array, " 3"], angle: Float[ArrayLike, ""]) -> Float[Array, "3 3"]:
@@ -55,6 +64,66 @@ def joint_frames(chain: KinematicChain, q: Float[ArrayLike, " n"]) -> Float[Arra
         frames.append(T)
     frames.append(matmul_small(T, chain.tip))
     return jnp.stack(frames)
+
+
+def link_positions(
+    chain: KinematicChain, q: Float[ArrayLike, " n"], tip_points: Float[ArrayLike, "m 3"]
+) -> Float[Array, "n+1+m 3"]:
+    """Positions in the base frame of every joint frame's origin, the tip's origin and
+    ``tip_points`` (points fixed in the tip frame, e.g. a camera centre), (n + 1 + m, 3).
+
+    The same numbers as :func:`joint_frames`, with an analytic derivative in ``q`` and
+    ``tip_points``: a revolute joint ``j`` with base-frame axis ``z_j`` through ``p_j``
+    moves a point ``p`` beyond it by ``z_j x (p - p_j) dq_j``, a prismatic one by
+    ``z_j dq_j`` (the columns of the geometric Jacobian, :func:`jacobian`). Reverse-mode
+    differentiation through the 4x4 products of the chain costs about 3x their
+    evaluation (a path's 591 grid configurations: 0.47 against 0.13 ms); this rule is a
+    few cross products per point. The chain itself is held fixed: no derivative with
+    respect to its origins or axes (use :func:`joint_frames` for that).
+    """
+    q = jnp.asarray(q, chain.origins.dtype)
+    tip_points = jnp.asarray(tip_points, q.dtype)
+    n = len(chain.joint_types)
+    # moved[k, j]: whether joint j moves point k (frame k's origin for k < n, else the tip
+    # and its points); a revolute joint does not move its own frame's origin
+    level = np.minimum(np.arange(n + 1 + tip_points.shape[0]), n)
+    joint = np.arange(n)
+    prismatic = np.asarray([kind == "prismatic" for kind in chain.joint_types])
+    moved = (joint[None, :] < level[:, None]) | (prismatic & (joint[None, :] == level[:, None]))
+    frames = jax.lax.stop_gradient(jax.tree_util.tree_map(jnp.asarray, chain))
+
+    @jax.custom_jvp
+    def positions(q, tip_points):
+        T = joint_frames(frames, q)
+        tip = jnp.sum(T[-1, None, :3, :3] * tip_points[:, None, :], axis=2) + T[-1, :3, 3]
+        return jnp.concatenate([T[:, :3, 3], tip], axis=0)
+
+    @positions.defjvp
+    def positions_jvp(primals, tangents):
+        q, tip_points = primals
+        dq, dtip = tangents
+        T = joint_frames(frames, q)
+        p = jnp.concatenate(
+            [
+                T[:, :3, 3],
+                jnp.sum(T[-1, None, :3, :3] * tip_points[:, None, :], axis=2) + T[-1, :3, 3],
+            ]
+        )
+        z = jnp.sum(T[:n, :3, :3] * frames.axes[:, None, :], axis=2)  # (n, 3) axes in base
+        w = z * dq[:, None]
+        # sum over the joints j that move point k of w_j x (p_k - p_j) (revolute) or w_j
+        # (prismatic), as (sum_j w_j) x p_k - sum_j w_j x p_j: two masked sums, not a cross
+        # product per point and joint (about 2x cheaper in reverse mode)
+        rev = jnp.asarray(moved & ~prismatic, q.dtype)[:, :, None]
+        pri = jnp.asarray(moved & prismatic, q.dtype)[:, :, None]
+        turn = jnp.sum(rev * w[None], axis=1)  # (K, 3)
+        offset = jnp.sum(rev * jnp.cross(w, T[:n, :3, 3])[None], axis=1)
+        dp = jnp.cross(turn, p) - offset + jnp.sum(pri * w[None], axis=1)
+        dp_tip = jnp.sum(T[-1, None, :3, :3] * dtip[:, None, :], axis=2)
+        dp = dp + jnp.concatenate([jnp.zeros((n + 1, 3), dp.dtype), dp_tip])
+        return p, dp
+
+    return positions(q, tip_points)
 
 
 def forward_kinematics(chain: KinematicChain, q: Float[ArrayLike, " n"]) -> Float[Array, "4 4"]:
