@@ -2,12 +2,13 @@
 
 Designs the KR 16-2's joint path for the simulated cell of ``jaxtraj design --example``
 (workpiece carried by a KR 60-3 along a smooth 3D curve) and reports: the design time
-with compilation (first call), a warm re-plan (the prediction moved by 5 mm, started
-from the design and its multipliers: with all starts, the design's shapes, and with the
-best start alone, whose first call compiles and whose later calls, moved by 10 and 20 mm,
-are the warm figures, each with the first round's BFGS started from the identity and from
-the design's inverse Hessian), convergence and evaluations per start (largest violation,
-KKT stationarity), the expected mean error and the constraints on a grid 10x finer.
+with compilation (first call), a warm re-plan (the prediction moved by 5 mm along every
+axis, started from the design and its multipliers: with all starts, the design's shapes,
+and with the best start alone, whose first call compiles and whose later calls, moved by
+10 and 20 mm along every axis, are the warm figures, each with the first round's BFGS
+started from the identity and from the design's inverse Hessian), convergence and
+evaluations per start (largest violation, KKT stationarity), the expected mean error and
+the constraints on a grid 10x finer.
 
 With ``--compare``, designs the path once for each estimator (the paper's DCT with
 k = 12 and the order-2 smoothness prior of ``estimate_points``) and measures every path,
@@ -634,7 +635,7 @@ def main(argv: list[str] | None = None) -> int:
     # warm re-plan: the best design and its multipliers, every round at --replan-penalty, all
     # starts (the design's shapes) and with the best one alone (the first call compiles);
     # the one-start re-plans with the BFGS started from the identity and from the design's
-    # inverse Hessian, alternated, each moved by 10 mm and then by 20 mm
+    # inverse Hessian, alternated, each moved by 10 mm and then by 20 mm along every axis
     print("per start: evaluations", np.asarray(designs.evaluations).tolist())
     for label, b, shifts, warm_h in (
         ("all starts", args.starts, (0.005,), True),
@@ -647,8 +648,9 @@ def main(argv: list[str] | None = None) -> int:
         for shift in shifts:
             warm, seconds = _replan(args, spec, res, best, shift, warm_h, b)
             print(
-                f"warm re-plan, {label} (prediction moved by {1000 * shift:.0f} mm, from the "
-                f"design and its multipliers): {seconds:.2f} s, expected mean "
+                f"warm re-plan, {label} (prediction moved by {1000 * shift:.0f} mm along each "
+                f"axis, {1000 * shift * 3**0.5:.1f} mm in all, from the design and its "
+                f"multipliers): {seconds:.2f} s, expected mean "
                 f"error {1000 * float(warm.expected_mean_error):.2f} mm, stationarity "
                 f"{float(warm.stationarity):.1e}, converged {bool(warm.converged)}, "
                 f"{int(warm.rounds)} round(s), {int(warm.evaluations)} evaluations",
