@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
 from .._linalg import cholesky_small, matmul_small, solve_triangular_small
@@ -158,8 +159,11 @@ def _sample_covariances(P, samples, R_w_o, layout, point, pixel_sigma):
 #: (relative; 27 covariances from isotropic to rank one and eigenvalue ratios of 1e6, against
 #: a rule with step 0.01 over [-90, 90]). The objective of a pose design evaluates it for
 #: every image and plausible trajectory: with 321 nodes it was half of the objective's cost.
-_DE_T = jnp.linspace(-3.0, 3.0, 33)
-_DE_SCALE = 4.0
+#: The nodes ``u`` and the trapezoidal weights ``du/dt dt`` (the end nodes' integrand is
+#: below 1e-8 of the sum) are numpy constants, so importing the module creates no JAX array.
+_DE_T = np.linspace(-3.0, 3.0, 33)
+_DE_U = 4.0 * np.sinh(_DE_T)
+_DE_W = 4.0 * np.cosh(_DE_T) * (_DE_T[1] - _DE_T[0])
 
 
 def gaussian_mean_norm(cov: Float[ArrayLike, "... 3 3"]) -> Float[Array, "..."]:
@@ -177,11 +181,8 @@ def gaussian_mean_norm(cov: Float[ArrayLike, "... 3 3"]) -> Float[Array, "..."]:
     c = cov / m[..., None, None]
     e2 = 0.5 * (1.0 - jnp.sum(c * jnp.swapaxes(c, -1, -2), axis=(-2, -1)))
     e3 = jnp.linalg.det(c)
-    t = _DE_T.astype(cov.dtype)
-    u = _DE_SCALE * jnp.sinh(t)
-    # trapezoidal weights du/dt * dt (the end nodes' integrand is below 1e-8 of the sum)
-    w = _DE_SCALE * jnp.cosh(t) * (t[1] - t[0])
-    s = jnp.exp(u)
+    w = jnp.asarray(_DE_W, cov.dtype)
+    s = jnp.exp(jnp.asarray(_DE_U, cov.dtype))
     det = 1.0 + 2.0 * s + 4.0 * s**2 * e2[..., None] + 8.0 * s**3 * e3[..., None]
     f = -jnp.expm1(-0.5 * jnp.log(det)) / jnp.sqrt(s)
     integral = jnp.sum(f * w, -1)
