@@ -17,7 +17,14 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Float
 
-__all__ = ["cholesky_small", "det3", "matmul_small", "solve_spd_small", "solve_triangular_small"]
+__all__ = [
+    "cholesky_small",
+    "det3",
+    "inverse_cholesky_small",
+    "matmul_small",
+    "solve_spd_small",
+    "solve_triangular_small",
+]
 
 
 @jax.custom_jvp
@@ -53,6 +60,46 @@ def _cholesky_steps(A):
         d = jnp.sqrt(v[j])
         L = L.at[:, j].set(jnp.where(rows > j, v / d, jnp.where(rows == j, d, 0.0)))
     return L
+
+
+@jax.custom_jvp
+def inverse_cholesky_small(A: Float[Array, "s s"]) -> Float[Array, "s s"]:
+    """``W = L^-1`` (lower triangular) of ``A = L L^T`` for a small SPD matrix, one row per
+    step (bordering: with ``W_i`` the inverse factor of the leading ``i x i`` block, row i
+    of ``L`` is ``l = W_i a``, ``a = A[:i, i]``, its pivot ``d = sqrt(A_ii - l.l)`` and row i
+    of ``W`` is ``[-(l^T W_i) / d, 1 / d]``). NaN if not positive definite, as
+    :func:`cholesky_small`; only the upper triangle of ``A`` is read.
+
+    With the inverse factor every later solve with ``A``'s factor is a product, so a
+    recursion that solves several times with one block (the block-tridiagonal factor of
+    :mod:`jaxtraj.estimators._blocktri`) unrolls one loop per block instead of one per
+    solve, and differentiates through products. Differentiated by ``dW = -Phi(W dA W^T) W``
+    (``Phi`` as in :func:`cholesky_small`).
+    """
+    return _inverse_cholesky_steps(A)
+
+
+@inverse_cholesky_small.defjvp
+def _inverse_cholesky_small_jvp(primals, tangents):
+    (A,), (dA,) = primals, tangents
+    W = _inverse_cholesky_steps(A)
+    s = A.shape[-1]
+    dA = jnp.triu(dA) + jnp.triu(dA, 1).T  # the symmetric matrix of the upper triangle
+    X = matmul_small(matmul_small(W, dA), W.T)
+    phi = jnp.tril(jnp.ones((s, s), A.dtype), -1) + 0.5 * jnp.eye(s, dtype=A.dtype)
+    return W, -matmul_small(X * phi, W)
+
+
+def _inverse_cholesky_steps(A):
+    s = A.shape[-1]
+    W = jnp.zeros_like(A).at[0, 0].set(1.0 / jnp.sqrt(A[0, 0]))
+    for i in range(1, s):
+        Wi = W[:i, :i]
+        row_l = jnp.sum(Wi * A[:i, i][None, :], axis=1)
+        d = jnp.sqrt(A[i, i] - jnp.sum(row_l * row_l))
+        row = jnp.concatenate([-jnp.sum(row_l[:, None] * Wi, axis=0) / d, (1.0 / d)[None]])
+        W = W.at[i, : i + 1].set(row)
+    return W
 
 
 def solve_triangular_small(C: Float[Array, "s s"], B: Array, *, trans: int = 0) -> Array:

@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 
 import jaxtraj as jt
+from jaxtraj import _linalg as la
 from jaxtraj.estimators import _blocktri as bt
 from jaxtraj.estimators import predict, select_process_psd, smooth_points, smooth_trajectory
 from jaxtraj.estimators.smoothness import (
@@ -46,17 +47,17 @@ def _random_blocktri(rng, F, s):
 def test_unrolled_small_cholesky_and_triangular_solves(rng, s):
     G = rng.normal(size=(s, s)) + 3 * np.eye(s)
     A = G @ G.T
-    C = np.asarray(bt._cholesky(jnp.asarray(A)))
+    C = np.asarray(la.cholesky_small(jnp.asarray(A)))
     np.testing.assert_allclose(C, np.linalg.cholesky(A), rtol=1e-12, atol=1e-12)
     B = rng.normal(size=(s, 4))
     np.testing.assert_allclose(
-        np.asarray(bt._tri(jnp.asarray(C), jnp.asarray(B))),
+        np.asarray(la.solve_triangular_small(jnp.asarray(C), jnp.asarray(B))),
         np.linalg.solve(C, B),
         rtol=1e-10,
         atol=1e-12,
     )
     np.testing.assert_allclose(
-        np.asarray(bt._tri(jnp.asarray(C), jnp.asarray(B[:, 0]), trans=1)),
+        np.asarray(la.solve_triangular_small(jnp.asarray(C), jnp.asarray(B[:, 0]), trans=1)),
         np.linalg.solve(C.T, B[:, 0]),
         rtol=1e-10,
         atol=1e-12,
@@ -64,7 +65,7 @@ def test_unrolled_small_cholesky_and_triangular_solves(rng, s):
     # not positive definite: NaN, as a failed LAPACK factorisation gives under JAX
     bad = A.copy()
     bad[-1, -1] = -1.0
-    assert np.isnan(np.asarray(bt._cholesky(jnp.asarray(bad)))).any()
+    assert np.isnan(np.asarray(la.cholesky_small(jnp.asarray(bad)))).any()
 
 
 @pytest.mark.parametrize("s", [3, 6])

@@ -40,6 +40,31 @@ def test_cholesky_rule_equals_the_steps_derivative(rng):
     np.testing.assert_allclose(h, h_steps, rtol=1e-9, atol=1e-10)
 
 
+@pytest.mark.parametrize("s", [1, 3, 6, 9])
+def test_inverse_cholesky_rule_equals_the_steps_derivative(rng, s):
+    A = _spd(rng, s)
+    A[np.tril_indices(s, -1)] += rng.normal(size=s * (s - 1) // 2)  # lower triangle not read
+    A = jnp.asarray(A)
+    W = la.inverse_cholesky_small(A)
+    sym = np.triu(A) + np.triu(A, 1).T
+    np.testing.assert_allclose(W, np.linalg.inv(np.linalg.cholesky(sym)), rtol=1e-11, atol=1e-13)
+    for jac in (jax.jacfwd, jax.jacrev):
+        np.testing.assert_allclose(
+            jax.jit(jac(la.inverse_cholesky_small))(A),
+            jax.jit(jac(la._inverse_cholesky_steps))(A),
+            rtol=1e-10,
+            atol=1e-12,
+        )
+    if s <= 6:  # differentiated twice (the 9x9 steps' Hessian compiles slowly)
+        h = jax.jit(jax.hessian(lambda a: jnp.sum(la.inverse_cholesky_small(a) ** 3)))(A)
+        h_steps = jax.jit(jax.hessian(lambda a: jnp.sum(la._inverse_cholesky_steps(a) ** 3)))(A)
+        np.testing.assert_allclose(h, h_steps, rtol=1e-9, atol=1e-10)
+    # not positive definite: NaN, as cholesky_small
+    bad = np.asarray(sym).copy()
+    bad[-1, -1] = -1.0
+    assert np.isnan(np.asarray(la.inverse_cholesky_small(jnp.asarray(bad)))).any()
+
+
 @pytest.mark.parametrize("trans", [0, 1])
 @pytest.mark.parametrize("rhs", [(), (4,)])
 def test_triangular_solve_rule_equals_the_steps_derivative(rng, trans, rhs):
