@@ -43,12 +43,16 @@ def cholesky_small(A: Float[Array, "s s"]) -> Float[Array, "s s"]:
 def _cholesky_small_jvp(primals, tangents):
     (A,), (dA,) = primals, tangents
     L = _cholesky_steps(A)
-    s = A.shape[-1]
     dA = jnp.tril(dA) + jnp.tril(dA, -1).T  # the symmetric matrix of the lower triangle
-    Linv = _lower_inverse(L)
-    X = matmul_small(matmul_small(Linv, dA), Linv.T)
-    phi = jnp.tril(jnp.ones((s, s), A.dtype), -1) + 0.5 * jnp.eye(s, dtype=A.dtype)
-    return L, matmul_small(L, X * phi)
+    return L, matmul_small(L, _phi_congruence(_lower_inverse(L), dA))
+
+
+def _phi_congruence(W, dA):
+    """``Phi(W dA W^T)``: the strict lower triangle plus half the diagonal (the factor
+    rules' common part)."""
+    s = W.shape[-1]
+    phi = jnp.tril(jnp.ones((s, s), W.dtype), -1) + 0.5 * jnp.eye(s, dtype=W.dtype)
+    return matmul_small(matmul_small(W, dA), W.T) * phi
 
 
 def _cholesky_steps(A):
@@ -83,11 +87,8 @@ def inverse_cholesky_small(A: Float[Array, "s s"]) -> Float[Array, "s s"]:
 def _inverse_cholesky_small_jvp(primals, tangents):
     (A,), (dA,) = primals, tangents
     W = _inverse_cholesky_steps(A)
-    s = A.shape[-1]
     dA = jnp.triu(dA) + jnp.triu(dA, 1).T  # the symmetric matrix of the upper triangle
-    X = matmul_small(matmul_small(W, dA), W.T)
-    phi = jnp.tril(jnp.ones((s, s), A.dtype), -1) + 0.5 * jnp.eye(s, dtype=A.dtype)
-    return W, -matmul_small(X * phi, W)
+    return W, -matmul_small(_phi_congruence(W, dA), W)
 
 
 def _inverse_cholesky_steps(A):
