@@ -162,17 +162,24 @@ def _q_scale(dt, order: int):
 def _assemble(H, g, A, Qinv, inv_q, order, start=None):
     """Block-tridiagonal normal equations of data blocks (H, g) plus the prior (and an
     optional Gaussian prior ``start = (information, mean)`` on the first state)."""
-    F = H.shape[0]
     s = 3 * order
     eye3 = jnp.eye(3, dtype=H.dtype)
-    Ak = jax.vmap(lambda a: jnp.kron(a, eye3))(A)
-    Wk = jax.vmap(lambda w: jnp.kron(w, eye3))(Qinv) * inv_q
-    D = jnp.zeros((F, s, s), H.dtype).at[:, :3, :3].set(H)
-    WA = matmul_small(Wk, Ak)  # products of small blocks as broadcast-and-sums (vmap)
-    D = D.at[:-1].add(matmul_small(jnp.swapaxes(Ak, 1, 2), WA))
-    D = D.at[1:].add(Wk)
-    E = -WA
-    b = jnp.zeros((F, s), H.dtype).at[:, :3].set(g)
+
+    def kron3(a):  # (n, m, m) -> (n, 3m, 3m): each block a (x) I_3, as a broadcast
+        n, m = a.shape[0], a.shape[-1]
+        return (a[:, :, None, :, None] * eye3[None, None, :, None, :]).reshape(n, 3 * m, 3 * m)
+
+    # the prior's blocks per coordinate (order x order), then the same for x, y and z:
+    # products of order x order blocks instead of (3 order)^2 ones
+    Wq = Qinv * inv_q
+    WA = matmul_small(Wq, A)  # broadcast-and-sums (vmap), see matmul_small
+    zero = jnp.zeros((1, order, order), H.dtype)
+    prior = jnp.concatenate([matmul_small(jnp.swapaxes(A, 1, 2), WA), zero]) + jnp.concatenate(
+        [zero, Wq]
+    )
+    D = kron3(prior) + jnp.pad(H, ((0, 0), (0, s - 3), (0, s - 3)))
+    E = -kron3(WA)
+    b = jnp.pad(g, ((0, 0), (0, s - 3)))
     if start is not None:
         L0, m0 = start
         D = D.at[0].add(L0)
