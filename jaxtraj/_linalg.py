@@ -17,6 +17,8 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Float
 
+from ._spd import _unrolled as _bordering
+
 __all__ = [
     "cholesky_small",
     "det3",
@@ -92,15 +94,8 @@ def _inverse_cholesky_small_jvp(primals, tangents):
 
 
 def _inverse_cholesky_steps(A):
-    s = A.shape[-1]
-    W = jnp.zeros_like(A).at[0, 0].set(1.0 / jnp.sqrt(A[0, 0]))
-    for i in range(1, s):
-        Wi = W[:i, :i]
-        row_l = jnp.sum(Wi * A[:i, i][None, :], axis=1)
-        d = jnp.sqrt(A[i, i] - jnp.sum(row_l * row_l))
-        row = jnp.concatenate([-jnp.sum(row_l[:, None] * Wi, axis=0) / d, (1.0 / d)[None]])
-        W = W.at[i, : i + 1].set(row)
-    return W
+    # the bordering steps of the batched solvers' factor, without their pivot clamp
+    return _bordering(A, jnp.diagonal(A), clamp=False)
 
 
 def solve_triangular_small(C: Float[Array, "s s"], B: Array, *, trans: int = 0) -> Array:

@@ -48,15 +48,21 @@ def _pivot(a_ii, ll, eps, ref):
     return jnp.sqrt(jnp.maximum(a_ii - ll, eps * jnp.abs(ref)))
 
 
-def _unrolled(A, ref):
+def _unrolled(A, ref, clamp: bool = True):
+    """The bordering steps unrolled (static slices; only the upper triangle of ``A`` is
+    read). ``clamp=False``: no pivot clamp, NaN where ``A`` is not positive definite
+    (:func:`jaxtraj._linalg.inverse_cholesky_small`)."""
     n = A.shape[-1]
     eps = jnp.finfo(A.dtype).eps
-    d0 = _pivot(A[0, 0], 0.0, eps, ref[0])
-    W = jnp.zeros_like(A).at[0, 0].set(1.0 / d0)
+
+    def pivot(a_ii, ll, ref_i):
+        return _pivot(a_ii, ll, eps, ref_i) if clamp else jnp.sqrt(a_ii - ll)
+
+    W = jnp.zeros_like(A).at[0, 0].set(1.0 / pivot(A[0, 0], 0.0, ref[0]))
     for i in range(1, n):
         Wi = W[:i, :i]
         l = matvec(Wi, A[:i, i])
-        d = _pivot(A[i, i], jnp.sum(l * l), eps, ref[i])
+        d = pivot(A[i, i], jnp.sum(l * l), ref[i])
         row = jnp.concatenate([-vecmat(l, Wi) / d, (1.0 / d)[None]])
         W = jax.lax.dynamic_update_slice(W, row[None, :], (i, 0))
     return W

@@ -25,19 +25,23 @@ def test_cholesky_rule_equals_the_steps_derivative(rng):
     A = jnp.asarray(A)
     L = la.cholesky_small(A)
     np.testing.assert_allclose(L, np.linalg.cholesky(np.tril(A) + np.tril(A, -1).T), atol=1e-12)
-    for jac in (jax.jacfwd, jax.jacrev):
-        np.testing.assert_allclose(
-            jax.jit(jac(la.cholesky_small))(A),
-            jax.jit(jac(la._cholesky_steps))(A),
-            rtol=1e-10,
-            atol=1e-12,
-        )
-    # under vmap and jit, and differentiated twice
+    # under vmap and jit, and differentiated once and twice
     As = jnp.stack([A, A + jnp.eye(s)])
     np.testing.assert_allclose(jax.jit(jax.vmap(la.cholesky_small))(As)[0], L, atol=1e-13)
-    h = jax.jit(jax.hessian(lambda a: jnp.sum(la.cholesky_small(a) ** 3)))(A)
-    h_steps = jax.jit(jax.hessian(lambda a: jnp.sum(la._cholesky_steps(a) ** 3)))(A)
-    np.testing.assert_allclose(h, h_steps, rtol=1e-9, atol=1e-10)
+    _assert_rule_equals_steps(la.cholesky_small, la._cholesky_steps, A, twice=True)
+
+
+def _assert_rule_equals_steps(rule, steps, A, twice):
+    """A factor's analytic rule against the derivatives of its steps: forward and reverse
+    Jacobians and (``twice``) the Hessian of a scalar of it, jitted."""
+    for jac in (jax.jacfwd, jax.jacrev):
+        np.testing.assert_allclose(
+            jax.jit(jac(rule))(A), jax.jit(jac(steps))(A), rtol=1e-10, atol=1e-12
+        )
+    if twice:
+        h = jax.jit(jax.hessian(lambda a: jnp.sum(rule(a) ** 3)))(A)
+        h_steps = jax.jit(jax.hessian(lambda a: jnp.sum(steps(a) ** 3)))(A)
+        np.testing.assert_allclose(h, h_steps, rtol=1e-9, atol=1e-10)
 
 
 @pytest.mark.parametrize("s", [1, 3, 6, 9])
@@ -48,17 +52,10 @@ def test_inverse_cholesky_rule_equals_the_steps_derivative(rng, s):
     W = la.inverse_cholesky_small(A)
     sym = np.triu(A) + np.triu(A, 1).T
     np.testing.assert_allclose(W, np.linalg.inv(np.linalg.cholesky(sym)), rtol=1e-11, atol=1e-13)
-    for jac in (jax.jacfwd, jax.jacrev):
-        np.testing.assert_allclose(
-            jax.jit(jac(la.inverse_cholesky_small))(A),
-            jax.jit(jac(la._inverse_cholesky_steps))(A),
-            rtol=1e-10,
-            atol=1e-12,
-        )
-    if s <= 6:  # differentiated twice (the 9x9 steps' Hessian compiles slowly)
-        h = jax.jit(jax.hessian(lambda a: jnp.sum(la.inverse_cholesky_small(a) ** 3)))(A)
-        h_steps = jax.jit(jax.hessian(lambda a: jnp.sum(la._inverse_cholesky_steps(a) ** 3)))(A)
-        np.testing.assert_allclose(h, h_steps, rtol=1e-9, atol=1e-10)
+    # the Hessian only up to 6x6 (the 9x9 steps' Hessian compiles slowly)
+    _assert_rule_equals_steps(
+        la.inverse_cholesky_small, la._inverse_cholesky_steps, A, twice=s <= 6
+    )
     # not positive definite: NaN, as cholesky_small
     bad = np.asarray(sym).copy()
     bad[-1, -1] = -1.0

@@ -29,16 +29,7 @@ from jaxtyping import Array, Float
 
 from .._linalg import inverse_cholesky_small as _inverse_cholesky
 from .._linalg import matmul_small as mm
-
-
-def _mv(M, x):
-    """``M @ x`` for a small block (a broadcast-and-sum, see :mod:`jaxtraj._linalg`)."""
-    return jnp.sum(M * x[None, :], axis=1)
-
-
-def _tmv(M, x):
-    """``M^T @ x`` for a small block."""
-    return jnp.sum(M * x[:, None], axis=0)
+from .._spd import matvec, vecmat
 
 
 class BlockCholesky(eqx.Module):
@@ -55,14 +46,14 @@ def factor_forward(
     """Block Cholesky factor of the matrix (diagonal ``D``, sub-diagonal ``E``) and the
     forward substitution ``y = L^-1 b``, in one scan."""
     W0 = _inverse_cholesky(D[0])
-    y0 = _mv(W0, b[0])
+    y0 = matvec(W0, b[0])
 
     def step(carry, inputs):
         W_prev, y_prev = carry
         D_i, E_prev, b_i = inputs
         M = mm(E_prev, W_prev.T)  # M = E C_prev^-T
         W = _inverse_cholesky(D_i - mm(M, M.T))
-        y = _mv(W, b_i - _mv(M, y_prev))
+        y = matvec(W, b_i - matvec(M, y_prev))
         return (W, y), (W, M, y)
 
     _, (Ws, Ms, ys) = jax.lax.scan(step, (W0, y0), (D[1:], E, b[1:]))
@@ -73,11 +64,11 @@ def factor_forward(
 def back_substitute(chol: BlockCholesky, y: Float[Array, "F s"]) -> Float[Array, "F s"]:
     """Solve ``L^T x = y`` (the second half of a solve)."""
     W, M = chol.W, chol.M
-    xl = _tmv(W[-1], y[-1])
+    xl = vecmat(y[-1], W[-1])
 
     def bwd(x_next, inputs):
         W_i, M_i, y_i = inputs
-        x = _tmv(W_i, y_i - _tmv(M_i, x_next))
+        x = vecmat(y_i - vecmat(x_next, M_i), W_i)
         return x, x
 
     _, xs = jax.lax.scan(bwd, xl, (W[:-1], M, y[:-1]), reverse=True)
@@ -92,11 +83,11 @@ def factor(D: Float[Array, "F s s"], E: Float[Array, "Fm1 s s"]) -> BlockCholesk
 def solve(chol: BlockCholesky, b: Float[Array, "F s"]) -> Float[Array, "F s"]:
     """Solve ``A x = b`` with the block Cholesky factor of ``A``."""
     W, M = chol.W, chol.M
-    y0 = _mv(W[0], b[0])
+    y0 = matvec(W[0], b[0])
 
     def fwd(y_prev, inputs):
         W_i, M_prev, b_i = inputs
-        y = _mv(W_i, b_i - _mv(M_prev, y_prev))
+        y = matvec(W_i, b_i - matvec(M_prev, y_prev))
         return y, y
 
     _, ys = jax.lax.scan(fwd, y0, (W[1:], M, b[1:]))
